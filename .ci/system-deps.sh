@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Install the system packages citytherm needs on Debian 12 (idempotent; needs root or sudo).
+# - postgresql-15-postgis-3: PostGIS for the city model database (integration tests, service)
+# - redis-server: Celery broker (integration tests, service)
+# - libusb-1.0-0, libgomp1: shared libraries open3d-cpu loads at import
+set -euo pipefail
+pkgs=(postgresql-15 postgresql-15-postgis-3 redis-server libusb-1.0-0 libgomp1 libgl1 libglib2.0-0)
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
+done
+if [ ${#missing[@]} -eq 0 ]; then
+  echo "system-deps: all present"
+  exit 0
+fi
+SUDO=""
+[ "$(id -u)" -eq 0 ] || SUDO="sudo"
+echo "system-deps: installing ${missing[*]}"
+$SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -qq
+$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"

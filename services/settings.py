@@ -1,0 +1,32 @@
+"""Configuration: one typed settings object from environment variables (prefix `CITYTHERM_`).
+
+Created once by the entry point (CLI command, API app factory, Celery app) and passed in; never
+read at import time. Defaults work on one machine with PostgreSQL on 5432 and Redis on 6379.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """citytherm settings (environment variables `CITYTHERM_<NAME>`)."""
+
+    model_config = SettingsConfigDict(env_prefix="CITYTHERM_", extra="ignore")
+
+    database_url: str = Field(
+        "postgresql+psycopg://postgres@127.0.0.1:5432/citytherm",
+        description="SQLAlchemy URL of the PostGIS city model database.",
+    )
+    redis_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker and result backend.")
+    storage_dir: Path = Field(Path("./citytherm-data"), description="Uploaded packages and job results.")
+    max_package_bytes: int = Field(20 * 1024**3, description="Largest expanded size of a sequence archive.")
+    max_package_members: int = Field(200_000, description="Most members in a sequence archive.")
+
+
+def get_settings() -> Settings:
+    """A fresh `Settings` read from the environment."""
+    return Settings()
