@@ -1,0 +1,123 @@
+"""Result objects of one building unit: what a unit hands back, what the CLI writes as files
+(`spec/results-format.md`) and what the service stores in one database transaction.
+
+In: produced by the texture/orientation stages. Out: plain, picklable frozen dataclasses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workers.pipeline.citymodel import Appearance
+from workers.pipeline.pose import Pose
+from workers.pipeline.sequence import Radiometry
+
+
+@dataclass(frozen=True, eq=False)
+class TextureTile:
+    """One atlas tile image.
+
+    Attributes:
+        name: path relative to the results folder, e.g. `textures/BLDG_0815_0.png` (= `imageURI`).
+        dn: `(H, W)` uint16 digital numbers (`value = DN · scale + offset`; 0 = not observed).
+    """
+
+    name: str
+    dn: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceStats:
+    """Per-surface texture quality and thermal statistics.
+
+    Attributes:
+        polygon_id, building_id: ids (building = the `Building`/`BuildingPart` owning the polygon).
+        surface_class: semantic class of the polygon.
+        texels_total: texels inside the polygon; texels_observed: of those, with a value.
+        frames_used: frame indices that contributed at least one texel.
+        mean_resolution_m: mean local resolution of the chosen observations, metres on the surface
+            per image pixel (NaN when nothing was observed).
+        mean_view_angle_deg: mean angle between the surface normal and the viewing ray, degrees.
+        temperature: statistics of observed texels in the radiometry unit: keys `mean`, `median`,
+            `std`, `min`, `max`, `p05`, `p25`, `p75`, `p95` (empty when nothing was observed).
+    """
+
+    polygon_id: str
+    building_id: str
+    surface_class: str
+    texels_total: int
+    texels_observed: int
+    frames_used: tuple[int, ...] = ()
+    mean_resolution_m: float = float("nan")
+    mean_view_angle_deg: float = float("nan")
+    temperature: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def observed_share(self) -> float:
+        """Observed texels / total texels (0 for an empty grid)."""
+        return self.texels_observed / self.texels_total if self.texels_total else 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class FramePose:
+    """Orientation of one frame against one top-level building.
+
+    `status` is `"refined"` or `"prior"` (refinement rejected or not run; `pose` is then the prior).
+    """
+
+    frame: int
+    building_id: str
+    pose: Pose
+    status: str
+    rms_px: float = float("nan")
+    matches: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Anomaly:
+    """A thermal anomaly (heat-leak candidate) on one surface.
+
+    Attributes:
+        outline: `(N, 3)` closed 3D ring on the surface, model CRS.
+        centre: `(3,)` model CRS.
+        area_m2, peak_delta_k, mean_delta_k: size and contrast against the surface's typical value.
+    """
+
+    building_id: str
+    polygon_id: str
+    outline: np.ndarray
+    centre: np.ndarray
+    area_m2: float
+    peak_delta_k: float
+    mean_delta_k: float
+    kind: str = "leak"
+
+
+@dataclass(frozen=True, eq=False)
+class BuildingResult:
+    """Everything one building unit produced.
+
+    Attributes:
+        building_id: top-level `Building` id.
+        appearance: the job's appearance for this building (theme, one `ParameterizedTexture` per
+            tile with `image_uri` = tile name and one target per textured polygon), or None when no
+            surface was observed.
+        tiles: the atlas tiles the appearance points to.
+        radiometry: how tile DNs map to physical values.
+        surfaces: statistics for every polygon of the building (parts included), observed or not.
+        poses: per-frame orientation against this building.
+        anomalies: heat-leak candidates found on its surfaces.
+        timings_s: seconds per stage inside the unit (e.g. `orient`, `texture`, `atlas`).
+    """
+
+    building_id: str
+    appearance: Appearance | None
+    tiles: tuple[TextureTile, ...]
+    radiometry: Radiometry
+    surfaces: tuple[SurfaceStats, ...]
+    poses: tuple[FramePose, ...] = ()
+    anomalies: tuple[Anomaly, ...] = ()
+    timings_s: Mapping[str, float] = field(default_factory=dict)
