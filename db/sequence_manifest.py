@@ -207,14 +207,14 @@ def parse_imu_csv(path: Path, name: str = "imu.csv") -> ImuSamples:
             rows = list(csv.reader(fh))
     except (OSError, UnicodeDecodeError) as exc:
         raise PackageError(name, f"unreadable: {exc}") from exc
-    rows = [r for r in rows if any(c.strip() for c in r)]
-    if not rows or tuple(c.strip().lower() for c in rows[0]) != IMU_HEADER:
+    numbered = [(k + 1, r) for k, r in enumerate(rows) if any(c.strip() for c in r)]  # 1-based lines
+    if not numbered or tuple(c.strip().lower() for c in numbered[0][1]) != IMU_HEADER:
         raise PackageError(name, f"header must be {','.join(IMU_HEADER)!r}")
-    if len(rows) < 2:
+    if len(numbered) < 2:
         raise PackageError(name, "no samples")
-    data = np.empty((len(rows) - 1, 7))
-    for j, row in enumerate(rows[1:]):
-        line = f"{name}:{j + 2}"
+    data = np.empty((len(numbered) - 1, 7))
+    for j, (lineno, row) in enumerate(numbered[1:]):
+        line = f"{name}:{lineno}"
         if len(row) != 7:
             raise PackageError(line, f"expected 7 values, got {len(row)}")
         for k, cell in enumerate(row):
@@ -227,7 +227,7 @@ def parse_imu_csv(path: Path, name: str = "imu.csv") -> ImuSamples:
             data[j, k] = v
     bad = np.nonzero(np.diff(data[:, 0]) <= 0)[0]
     if len(bad):
-        raise PackageError(f"{name}:{bad[0] + 3}.time", "times must increase")
+        raise PackageError(f"{name}:{numbered[bad[0] + 2][0]}.time", "times must increase")
     return ImuSamples(time=data[:, 0], position=data[:, 1:4], attitude_deg=data[:, 4:7])
 
 
