@@ -1,0 +1,433 @@
+"""One CityGML building element (with its parts) -> `citymodel.Building`.
+
+In: a complete `bldg:Building` lxml element (CityGML 1.0, 2.0 or 3.0), as handed over by the
+streaming reader once its end tag has been parsed. Out: a frozen `Building` with its parts,
+attributes, appearances and polygons (rings `(N, 3)` float64 in the model CRS, as written).
+
+Geometry is collected from `lodXSolid`, `lodXMultiSurface`, `lodXGeometry`, `lod0FootPrint` /
+`lod0RoofEdge`, boundary surfaces (`bldg:boundedBy` in 1.0/2.0, `core:boundary` in 3.0) and outer
+building installations, through `MultiSurface`, `CompositeSurface`, `Solid`/`Shell`,
+`OrientableSurface` (orientation `-` reverses the rings of a polygon defined inside it) and
+`Surface`/`PolygonPatch`. `xlink:href` references are resolved after the whole building has been
+read (forward references included): a polygon defined in a boundary surface and referenced from
+a solid is one polygon with `in_solid=True`. References to polygons outside the building are
+logged and dropped.
+
+Ids: a polygon without `gml:id` gets `<building id>_poly<k>` (k = its position among the
+building's polygons in document order), a ring without one `<polygon id>_ring<j>` (j = 0 for the
+exterior, 1.. for the interiors); `_g` is appended until the id is unused in the building.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, MutableMapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from lxml import etree
+
+from db.citygml.appearance_read import AppearanceDraft, finish_appearance, parse_appearance
+from db.citygml.names import (
+    BOUNDARY_CLASSES,
+    CORE_ATTRIBUTES,
+    MULTI_ATTRIBUTES,
+    STANDARD_ATTRIBUTES,
+    XLINK_HREF,
+    CityGMLError,
+    local,
+    to_ncname,
+)
+from workers.pipeline.citymodel import Building, Polygon, Ring, SurfaceData
+
+log = logging.getLogger(__name__)
+
+_GEOM_SUFFIXES = ("Solid", "MultiSurface", "Geometry", "FootPrint", "RoofEdge")
+_SKIP_GEOM = frozenset({"LineString", "MultiCurve", "Curve", "CompositeCurve", "Point", "MultiPoint"})
+_GENERIC_KINDS: dict[str, type] = {
+    "stringAttribute": str,
+    "intAttribute": int,
+    "doubleAttribute": float,
+    "dateAttribute": str,
+    "uriAttribute": str,
+    "measureAttribute": float,
+    "StringAttribute": str,
+    "IntAttribute": int,
+    "DoubleAttribute": float,
+    "DateAttribute": str,
+    "UriAttribute": str,
+    "MeasureAttribute": float,
+    "CodeAttribute": str,
+}
+
+
+@dataclass
+class _PolyRec:
+    """A polygon definition while its building is being read."""
+
+    id: str | None
+    rings: list[tuple[str | None, np.ndarray]]
+    surface_class: str
+    lod: int
+    surface_id: str | None
+    in_solid: bool
+    collection_id: str | None
+
+
+@dataclass
+class _Scope:
+    """Per top-level building: definitions and references, for xlink resolution."""
+
+    polys: dict[str, _PolyRec] = field(default_factory=dict)
+    collections: dict[str, list[_PolyRec]] = field(default_factory=dict)
+    refs: list[tuple[str, bool, int | None]] = field(default_factory=list)
+    ids: set[str] = field(default_factory=set)
+
+
+@dataclass
+class _Draft:
+    """A building or part while it is being read."""
+
+    id: str
+    generated_id: bool
+    is_part: bool
+    parent_id: str | None
+    polys: list[_PolyRec] = field(default_factory=list)
+    parts: list[_Draft] = field(default_factory=list)
+    attributes: dict[str, Any] = field(default_factory=dict)
+    appearances: list[AppearanceDraft] = field(default_factory=list)
+    name: str | None = None
+    srs: str | None = None
+    envelope_srs: str | None = None
+
+
+def _is_gml(tag: str) -> bool:
+    """True for a tag in a GML namespace (3.1 or 3.2)."""
+    return tag.startswith("{http://www.opengis.net/gml")
+
+
+def _coords(values: np.ndarray, dim: int, el: etree._Element) -> np.ndarray:
+    """Flat coordinate values -> `(N, 3)` float64 (2D input gets z = 0)."""
+    if dim not in (2, 3) or len(values) % dim:
+        raise CityGMLError(
+            f"<{local(el.tag)}>: {len(values)} values do not form points of dimension {dim}",
+            line=el.sourceline,
+        )
+    pts = values.reshape(-1, dim)
+    if dim == 2:
+        pts = np.column_stack([pts, np.zeros(len(pts))])
+    return pts
+
+
+def _numbers(text: str | None, el: etree._Element) -> np.ndarray:
+    try:
+        return np.array((text or "").split(), dtype=np.float64)
+    except ValueError as exc:
+        raise CityGMLError(f"<{local(el.tag)}>: not a list of numbers", line=el.sourceline) from exc
+
+
+def _ring_coords(ring: etree._Element, dim: int) -> np.ndarray:
+    """`gml:LinearRing` -> `(N, 3)` float64 from `posList`, `pos` or `coordinates`."""
+    d = ring.get("srsDimension")
+    dim = int(d) if d else dim
+    parts: list[np.ndarray] = []
+    for ch in ring:
+        ln = local(ch.tag)
+        if ln == "posList":
+            d = ch.get("srsDimension") or ch.get("dimension")
+            return _coords(_numbers(ch.text, ch), int(d) if d else dim, ch)
+        if ln == "pos":
+            d = ch.get("srsDimension") or ch.get("dimension")
+            vals = _numbers(ch.text, ch)
+            parts.append(_coords(vals, int(d) if d else len(vals) if len(vals) in (2, 3) else dim, ch))
+        elif ln == "coordinates":
+            cs, ts, dec = ch.get("cs", ","), ch.get("ts", " "), ch.get("decimal", ".")
+            text = ch.text or ""
+            if dec != ".":
+                text = text.replace(dec, ".")
+            tuples = [t for t in (text.split() if ts.isspace() else text.split(ts)) if t.strip()]
+            rows = [_numbers(t.replace(cs, " "), ch) for t in tuples]
+            if rows:
+                width = {len(r) for r in rows}
+                if len(width) != 1:
+                    raise CityGMLError("<coordinates>: tuples of different dimension", line=ch.sourceline)
+                parts.append(_coords(np.concatenate(rows), width.pop(), ch))
+    if not parts:
+        raise CityGMLError(f"<{local(ring.tag)}> without coordinates", line=ring.sourceline)
+    return np.concatenate(parts, axis=0)
+
+
+class _BuildingReader:
+    """Reads one top-level building element (and its parts) into a `Building`."""
+
+    def __init__(self, id_attr: str, default_srs: str | None, surface_registry: Mapping[str, SurfaceData]):
+        self.id_attr = id_attr
+        self.default_srs = default_srs
+        self.global_sd = surface_registry
+        self.scope = _Scope()
+        self.local_sd: dict[str, SurfaceData] = {}
+
+    # ---- geometry -------------------------------------------------------------------------
+    def _polygon(self, el: etree._Element, d: _Draft, ctx: tuple, dim: int) -> None:
+        cls, sid, lod, in_solid, coll, sign = ctx
+        rings: list[tuple[str | None, np.ndarray]] = []
+        interiors: list[tuple[str | None, np.ndarray]] = []
+        for ch in el:
+            ln = local(ch.tag)
+            if ln not in ("exterior", "interior", "outerBoundaryIs", "innerBoundaryIs"):
+                continue
+            for ring in ch:
+                if local(ring.tag) != "LinearRing":
+                    if isinstance(ring.tag, str):
+                        raise CityGMLError(f"unsupported ring type <{local(ring.tag)}>", line=ring.sourceline)
+                    continue
+                coords = _ring_coords(ring, dim)
+                if sign < 0:
+                    coords = coords[::-1].copy()
+                rid = ring.get(self.id_attr)
+                if rid:
+                    self.scope.ids.add(rid)
+                (rings if ln in ("exterior", "outerBoundaryIs") else interiors).append((rid, coords))
+        if len(rings) != 1:
+            raise CityGMLError(f"<{local(el.tag)}> needs exactly one exterior ring", line=el.sourceline)
+        pid = el.get(self.id_attr)
+        rec = _PolyRec(pid, rings + interiors, cls, lod, sid, in_solid, coll)
+        d.polys.append(rec)
+        if pid:
+            self.scope.ids.add(pid)
+            self.scope.polys[pid] = rec
+        if coll:
+            self.scope.collections.setdefault(coll, []).append(rec)
+
+    def _geometry(self, el: etree._Element, d: _Draft, ctx: tuple, dim: int) -> None:
+        """Walk a geometry subtree; `ctx` = (class, surface id, lod, in_solid, collection id, sign)."""
+        href = el.get(XLINK_HREF)
+        if href is not None:
+            self.scope.refs.append((href.strip().lstrip("#"), ctx[3], el.sourceline))
+            return
+        ln = local(el.tag)
+        if not ln or ln in _SKIP_GEOM:
+            return
+        sdim = el.get("srsDimension")
+        if sdim:
+            dim = int(sdim)
+        srs = el.get("srsName")
+        if srs and d.srs is None:
+            d.srs = srs
+        if ln in ("Polygon", "PolygonPatch", "Triangle", "Rectangle"):
+            self._polygon(el, d, ctx, dim)
+            return
+        cls, sid, lod, in_solid, coll, sign = ctx
+        if ln == "OrientableSurface" and el.get("orientation", "+").strip() == "-":
+            sign = -sign
+        elif ln == "Solid":
+            in_solid = True
+        elif ln in ("MultiSurface", "CompositeSurface", "Shell", "Surface", "TriangulatedSurface"):
+            gid = el.get(self.id_attr)
+            if gid:
+                coll = gid
+                self.scope.ids.add(gid)
+        ctx = (cls, sid, lod, in_solid, coll, sign)
+        for ch in el:
+            if isinstance(ch.tag, str):
+                self._geometry(ch, d, ctx, dim)
+
+    def _geom_property(self, el: etree._Element, d: _Draft, cls: str, sid: str | None) -> bool:
+        """Handle a `lodX<Geometry>` property; False when `el` is not one."""
+        ln = local(el.tag)
+        if not (len(ln) > 4 and ln.startswith("lod") and ln[3].isdigit() and ln[4:] in _GEOM_SUFFIXES):
+            return False
+        self._geometry(el, d, (cls, sid, int(ln[3]), False, None, 1), 3)
+        return True
+
+    def _boundary(self, prop: etree._Element, d: _Draft) -> None:
+        for surf in prop:
+            ln = local(surf.tag)
+            if not ln:
+                continue
+            cls = BOUNDARY_CLASSES.get(ln, "unclassified")
+            sid = surf.get(self.id_attr)
+            if sid:
+                self.scope.ids.add(sid)
+            for ch in surf:
+                if isinstance(ch.tag, str):
+                    self._geom_property(ch, d, cls, sid)
+
+    def _installation(self, prop: etree._Element, d: _Draft) -> None:
+        for inst in prop:
+            for ch in inst:
+                if not isinstance(ch.tag, str):
+                    continue
+                if local(ch.tag) in ("boundedBy", "boundary") and not _is_gml(ch.tag):
+                    self._boundary(ch, d)
+                else:
+                    self._geom_property(ch, d, "unclassified", None)
+
+    # ---- attributes ------------------------------------------------------------------------
+    def _generic(self, el: etree._Element, d: _Draft, prefix: str = "") -> None:
+        ln = local(el.tag)
+        if ln == "genericAttribute":  # CityGML 3.0 wrapper
+            for ch in el:
+                if isinstance(ch.tag, str):
+                    self._generic(ch, d, prefix)
+            return
+        if ln in ("genericAttributeSet", "GenericAttributeSet"):
+            name = el.get("name") or next((c.text for c in el if local(c.tag) == "name"), "") or ""
+            for ch in el:
+                if local(ch.tag) not in ("name", "value"):
+                    self._generic(ch, d, f"{prefix}{name.strip()}.")
+            return
+        kind = _GENERIC_KINDS.get(ln)
+        if kind is None:
+            return
+        name = el.get("name")
+        value_el = None
+        for ch in el:
+            cl = local(ch.tag)
+            if cl == "name" and name is None:
+                name = (ch.text or "").strip()
+            elif cl == "value":
+                value_el = ch
+        if not name or value_el is None:
+            return
+        text = (value_el.text or "").strip()
+        try:
+            d.attributes[prefix + name] = kind(text)
+        except ValueError:
+            d.attributes[prefix + name] = text
+
+    def _standard(self, ln: str, el: etree._Element, d: _Draft) -> None:
+        text = (el.text or "").strip()
+        kind = STANDARD_ATTRIBUTES.get(ln, str)
+        try:
+            value: Any = kind(text)
+        except ValueError:
+            value = text
+        if ln in MULTI_ATTRIBUTES and ln in d.attributes:
+            prev = d.attributes[ln]
+            d.attributes[ln] = (*prev, value) if isinstance(prev, tuple) else (prev, value)
+        else:
+            d.attributes[ln] = value
+
+    # ---- building --------------------------------------------------------------------------
+    def draft(self, el: etree._Element, bid: str, generated: bool, parent: str | None) -> _Draft:
+        d = _Draft(id=bid, generated_id=generated, is_part=parent is not None, parent_id=parent)
+        self.scope.ids.add(bid)
+        n_parts = 0
+        for ch in el:
+            tag = ch.tag
+            if not isinstance(tag, str):
+                continue
+            ln = local(tag)
+            is_gml = _is_gml(tag)
+            if self._geom_property(ch, d, "unclassified", None):
+                continue
+            if ln in ("boundedBy", "boundary") and not is_gml:
+                self._boundary(ch, d)
+            elif ln == "boundedBy":
+                env = ch[0] if len(ch) else None
+                if env is not None and env.get("srsName"):
+                    d.envelope_srs = env.get("srsName")
+            elif ln == "name" and is_gml:
+                d.name = d.name if d.name is not None else (ch.text or "").strip()
+            elif ln in STANDARD_ATTRIBUTES and not is_gml:
+                self._standard(ln, ch, d)
+            elif ln in CORE_ATTRIBUTES:
+                d.attributes[ln] = (ch.text or "").strip()
+            elif ln == "appearance":
+                for app in ch:
+                    if local(app.tag) == "Appearance":
+                        d.appearances.append(parse_appearance(app, self.id_attr, self.local_sd, d.id))
+            elif ln in ("consistsOfBuildingPart", "buildingPart"):
+                for part in ch:
+                    if local(part.tag) == "BuildingPart":
+                        pid = part.get(self.id_attr)
+                        n_parts += 1
+                        gen = not pid
+                        d.parts.append(self.draft(part, pid or f"{bid}_part{n_parts}", gen, bid))
+            elif ln == "outerBuildingInstallation":
+                self._installation(ch, d)
+            elif ln in _GENERIC_KINDS or ln in ("genericAttribute", "genericAttributeSet"):
+                self._generic(ch, d)
+        return d
+
+    def _unique(self, base: str) -> str:
+        out = to_ncname(base)
+        while out in self.scope.ids:
+            out += "_g"
+        self.scope.ids.add(out)
+        return out
+
+    def build(self, d: _Draft, parent_srs: str | None) -> Building:
+        srs = d.srs or d.envelope_srs or parent_srs
+        polys: list[Polygon] = []
+        for k, rec in enumerate(d.polys):
+            gen_pid = rec.id is None
+            pid = rec.id if rec.id is not None else self._unique(f"{d.id}_poly{k}")
+            rings = []
+            for j, (rid, coords) in enumerate(rec.rings):
+                gen_r = rid is None
+                rings.append(Ring(rid if rid else self._unique(f"{pid}_ring{j}"), coords, gen_r))
+            polys.append(
+                Polygon(
+                    id=pid,
+                    exterior=rings[0],
+                    interiors=tuple(rings[1:]),
+                    surface_class=rec.surface_class,
+                    lod=rec.lod,
+                    surface_id=rec.surface_id,
+                    in_solid=rec.in_solid,
+                    generated_id=gen_pid,
+                    collection_id=rec.collection_id,
+                )
+            )
+        registry: MutableMapping[str, SurfaceData] = {**self.global_sd, **self.local_sd}
+        return Building(
+            id=d.id,
+            polygons=tuple(polys),
+            parts=tuple(self.build(p, srs) for p in d.parts),
+            attributes=d.attributes,
+            is_part=d.is_part,
+            parent_id=d.parent_id,
+            srs_name=srs if srs is not None else self.default_srs,
+            appearances=tuple(finish_appearance(a, registry) for a in d.appearances),
+            name=d.name,
+            generated_id=d.generated_id,
+        )
+
+    def resolve(self) -> None:
+        """Apply the `xlink:href` references collected in the building."""
+        for ref, in_solid, line in self.scope.refs:
+            rec = self.scope.polys.get(ref)
+            targets = [rec] if rec is not None else self.scope.collections.get(ref)
+            if targets is None:
+                log.warning("line %s: xlink:href #%s not found in its building; reference dropped", line, ref)
+                continue
+            if in_solid:
+                for t in targets:
+                    t.in_solid = True
+
+
+def read_building(
+    el: etree._Element,
+    *,
+    id_attr: str,
+    fallback_id: str,
+    default_srs: str | None,
+    surface_registry: Mapping[str, SurfaceData] | None = None,
+) -> Building:
+    """A complete top-level building element -> `Building` (parts nested).
+
+    Args:
+        el: the `bldg:Building` element, fully parsed.
+        id_attr: Clark name of `gml:id` for the file's GML version.
+        fallback_id: id to use when the building has no `gml:id` (stable: from its position).
+        default_srs: the model's `srsName`, used when the building's geometry names none.
+        surface_registry: model-level surface data by id (for `xlink:href` from local appearances).
+    """
+    reader = _BuildingReader(id_attr, default_srs, surface_registry or {})
+    bid = el.get(id_attr)
+    draft = reader.draft(el, bid or fallback_id, not bid, None)
+    reader.resolve()
+    return reader.build(draft, None)
