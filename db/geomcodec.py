@@ -1,0 +1,240 @@
+"""Geometry encoding between the domain dataclasses and PostGIS, vectorised over batches.
+
+In: `Polygon`s / `Building`s (`workers/pipeline/citymodel.py`), coordinates in the model CRS
+(metres). Out: hex EWKB strings with the model SRID (what PostGIS parses from text input and
+COPY), plane figures per polygon, footprints and 3DCityDB-style envelopes; and back: WKB of a
+`POLYGON Z` -> rings `(N, 3)` float64, bit-exact (EWKB carries IEEE doubles unchanged).
+
+Rings are written exactly as read; a ring that was not closed is closed for PostGIS (which refuses
+open rings) and flagged so the export can drop the closing vertex again. A polygon with a ring of
+fewer than 3 distinct vertices cannot be held by PostGIS: it gets no geometry (NULL) and its rings
+are kept as JSON instead.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+
+from workers.pipeline.citymodel import Building, Polygon
+
+__all__ = [
+    "EncodedPolygons",
+    "encode_envelope",
+    "encode_footprints",
+    "encode_linestring_z",
+    "encode_point_z",
+    "encode_polygon_z",
+    "encode_polygons",
+    "polygon_rings_from_wkb",
+]
+
+_WKB_Z = 0x80000000
+_WKB_SRID = 0x20000000
+_POINT, _LINESTRING, _POLYGON = 1, 2, 3
+#: polygons whose unit normal has z below this count as downward-facing (ground) for footprints.
+_DOWNWARD_NZ = -0.5
+
+
+def _header(geom_type: int, srid: int) -> bytes:
+    return struct.pack("<BII", 1, geom_type | _WKB_Z | _WKB_SRID, srid)
+
+
+def encode_polygon_z(rings: Sequence[np.ndarray], srid: int) -> str:
+    """Closed rings (each `(N, 3)` float64, N ≥ 4, exterior first) -> hex EWKB `POLYGON Z`."""
+    parts = [_header(_POLYGON, srid), struct.pack("<I", len(rings))]
+    for r in rings:
+        r = np.ascontiguousarray(r, dtype="<f8")
+        parts.append(struct.pack("<I", r.shape[0]))
+        parts.append(r.tobytes())
+    return b"".join(parts).hex()
+
+
+def encode_point_z(xyz: np.ndarray, srid: int) -> str:
+    """`(3,)` -> hex EWKB `POINT Z`."""
+    return (_header(_POINT, srid) + np.ascontiguousarray(xyz, dtype="<f8").reshape(3).tobytes()).hex()
+
+
+def encode_linestring_z(points: np.ndarray, srid: int) -> str:
+    """`(N, 3)`, N ≥ 2 -> hex EWKB `LINESTRING Z`."""
+    p = np.ascontiguousarray(points, dtype="<f8").reshape(-1, 3)
+    return (_header(_LINESTRING, srid) + struct.pack("<I", p.shape[0]) + p.tobytes()).hex()
+
+
+def encode_envelope(lo: np.ndarray, hi: np.ndarray, srid: int) -> str:
+    """3D box `(3,)`, `(3,)` -> hex EWKB `POLYGON Z` through its corners as 3DCityDB stores an
+    envelope: (x0 y0 z0, x1 y0 z0, x1 y1 z1, x0 y1 z1, x0 y0 z0)."""
+    x0, y0, z0 = (float(v) for v in lo)
+    x1, y1, z1 = (float(v) for v in hi)
+    ring = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z1], [x0, y1, z1], [x0, y0, z0]])
+    return encode_polygon_z([ring], srid)
+
+
+@dataclass(frozen=True)
+class EncodedPolygons:
+    """Per polygon of a batch (in input order).
+
+    Attributes:
+        ewkb: hex EWKB `POLYGON Z` or None (PostGIS cannot hold the rings: see `raw_rings`).
+        ring_closed: per polygon, per ring: was the ring closed in the input.
+        normal: `(P, 3)` unit plane normals (right-hand rule of the exterior ring; NaN if degenerate).
+        offset: `(P,)` plane offsets, `normal · x = offset`, metres.
+        area: `(P,)` areas (exterior minus holes), m².
+    """
+
+    ewkb: list[str | None]
+    ring_closed: list[list[bool]]
+    normal: np.ndarray
+    offset: np.ndarray
+    area: np.ndarray
+
+
+def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
+    """Encode a batch of polygons and compute their planes (Newell's method, vectorised)."""
+    ewkb: list[str | None] = []
+    closed_flags: list[list[bool]] = []
+    closed_rings: list[np.ndarray] = []
+    ring_poly: list[int] = []
+    ring_is_ext: list[bool] = []
+    for k, poly in enumerate(polygons):
+        rings = []
+        flags = []
+        ok = True
+        for j, r in enumerate(poly.rings):
+            c = np.asarray(r.coords, dtype=np.float64)
+            closed = c.shape[0] >= 2 and bool(np.array_equal(c[0], c[-1]))
+            if not closed and c.shape[0] > 0:
+                c = np.vstack([c, c[:1]])
+            if c.shape[0] < 4:
+                ok = False
+            flags.append(closed)
+            rings.append(c)
+            if c.shape[0] > 0:
+                closed_rings.append(c)
+                ring_poly.append(k)
+                ring_is_ext.append(j == 0)
+        closed_flags.append(flags)
+        ewkb.append(encode_polygon_z(rings, srid) if ok else None)
+    n_poly = len(polygons)
+    normal = np.full((n_poly, 3), np.nan)
+    offset = np.full(n_poly, np.nan)
+    area = np.full(n_poly, np.nan)
+    if not closed_rings:
+        return EncodedPolygons(ewkb, closed_flags, normal, offset, area)
+    lengths = np.array([c.shape[0] for c in closed_rings])
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    pts = np.concatenate(closed_rings, axis=0)
+    # centre each ring on its first vertex: large UTM coordinates lose no precision in the products
+    pts = pts - np.repeat(pts[starts], lengths, axis=0)
+    a, b = pts[:-1], pts[1:]
+    terms = np.stack(
+        [
+            (a[:, 1] - b[:, 1]) * (a[:, 2] + b[:, 2]),
+            (a[:, 2] - b[:, 2]) * (a[:, 0] + b[:, 0]),
+            (a[:, 0] - b[:, 0]) * (a[:, 1] + b[:, 1]),
+        ],
+        axis=1,
+    )
+    # drop the pair joining the last vertex of one ring to the first of the next
+    edge_ok = np.ones(len(terms), dtype=bool)
+    edge_ok[(starts[1:] - 1)] = False
+    terms[~edge_ok] = 0.0
+    terms = np.vstack([terms, np.zeros((1, 3))])
+    newell = np.add.reduceat(terms, starts, axis=0)  # (R, 3), length = 2 × area
+    ring_area = 0.5 * np.linalg.norm(newell, axis=1)
+    ring_poly_a = np.asarray(ring_poly)
+    ext = np.asarray(ring_is_ext)
+    # exterior ring centroid (distinct vertices: closing vertex excluded)
+    abs_pts = np.concatenate(closed_rings, axis=0)
+    sums = np.add.reduceat(abs_pts, starts, axis=0) - abs_pts[starts + lengths - 1]
+    centroid = sums / np.maximum(lengths - 1, 1)[:, None]
+    ext_idx = np.flatnonzero(ext)
+    n_len = np.linalg.norm(newell[ext_idx], axis=1)
+    good = n_len > 1e-12
+    pk = ring_poly_a[ext_idx]
+    unit = np.where(good[:, None], newell[ext_idx] / np.where(good, n_len, 1.0)[:, None], np.nan)
+    normal[pk] = unit
+    offset[pk] = np.einsum("ij,ij->i", unit, centroid[ext_idx])
+    area_acc = np.zeros(n_poly)
+    np.add.at(area_acc, ring_poly_a, np.where(ext, ring_area, -ring_area))
+    area[pk] = area_acc[pk]
+    return EncodedPolygons(ewkb, closed_flags, normal, offset, area)
+
+
+def _footprint_geometry(building: Building, normals: dict[str, np.ndarray]) -> shapely.Geometry | None:
+    """2D footprint of a building (parts included): union of its ground surfaces, else of its
+    downward-facing polygons, else the convex hull of all vertices; a valid (Multi)Polygon."""
+    polys = list(building.iter_polygons())
+    if not polys:
+        return None
+    ground = [p for p in polys if p.surface_class == "GroundSurface"]
+    if not ground:
+        ground = [p for p in polys if p.id in normals and normals[p.id][2] < _DOWNWARD_NZ]
+    shapes = []
+    for p in ground:
+        try:
+            g = shapely.Polygon(p.exterior.coords[:, :2], [h.coords[:, :2] for h in p.interiors])
+        except (ValueError, shapely.errors.GEOSException):
+            continue
+        if not g.is_valid:
+            g = shapely.make_valid(g)
+        if not g.is_empty and g.area > 0:
+            shapes.append(g)
+    if shapes:
+        geom = shapes[0] if len(shapes) == 1 else shapely.union_all(shapes)
+    else:
+        pts = np.concatenate([r.coords[:, :2] for p in polys for r in p.rings], axis=0)
+        geom = shapely.MultiPoint(pts).convex_hull
+    if not geom.is_valid:
+        geom = shapely.make_valid(geom)
+    parts = [g for g in shapely.get_parts(geom) if isinstance(g, shapely.Polygon) and g.area > 0]
+    if not parts:
+        return None
+    return shapely.MultiPolygon(parts)
+
+
+def encode_footprints(
+    buildings: Sequence[Building], normals: dict[str, np.ndarray], srid: int
+) -> list[str | None]:
+    """Hex EWKB `MULTIPOLYGON` footprints (2D, SRID set) per building, None where there is none.
+
+    `normals` maps polygon id -> unit normal `(3,)` (from `encode_polygons`)."""
+    geoms = [_footprint_geometry(b, normals) for b in buildings]
+    arr = np.array([g if g is not None else None for g in geoms], dtype=object)
+    if len(arr) == 0:
+        return []
+    arr = shapely.set_srid(arr, srid)
+    out = shapely.to_wkb(arr, hex=True, include_srid=True, output_dimension=2)
+    return [None if g is None else str(o) for g, o in zip(geoms, out, strict=True)]
+
+
+def polygon_rings_from_wkb(wkb: bytes | memoryview) -> list[np.ndarray]:
+    """(E)WKB `POLYGON Z` -> rings, each `(N, 3)` float64 (exterior first); bit-exact."""
+    buf = bytes(wkb)
+    order = "<" if buf[0] == 1 else ">"
+    (gtype,) = struct.unpack_from(order + "I", buf, 1)
+    pos = 5
+    if gtype & _WKB_SRID:
+        pos += 4
+    base = gtype & 0x0FFFFFFF
+    has_z = bool(gtype & _WKB_Z) or base // 1000 in (1, 3)
+    if base % 1000 != _POLYGON:
+        raise ValueError(f"expected a POLYGON in WKB, got type {gtype:#x}")
+    dim = 3 if has_z else 2
+    (nrings,) = struct.unpack_from(order + "I", buf, pos)
+    pos += 4
+    rings = []
+    dt = np.dtype(order + "f8")
+    for _ in range(nrings):
+        (n,) = struct.unpack_from(order + "I", buf, pos)
+        pos += 4
+        c = np.frombuffer(buf, dtype=dt, count=n * dim, offset=pos).reshape(n, dim).astype(np.float64)
+        pos += 8 * n * dim
+        if dim == 2:
+            c = np.hstack([c, np.zeros((n, 1))])
+        rings.append(c)
+    return rings
