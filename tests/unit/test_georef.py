@@ -20,7 +20,9 @@ from workers.pipeline.georef import (
     attitude_from_ned_from_body,
     body_from_cam,
     camera_pose,
+    camera_pose_arrays,
     camera_poses,
+    ins_from_camera,
     meridian_convergence_deg,
     model_positions,
     ned_from_body,
@@ -201,6 +203,20 @@ def test_vectorised_poses_equal_single_poses() -> None:
     assert ned_from_body(A).shape == (20, 3, 3)
 
 
+@settings(max_examples=100, deadline=None)
+@given(att=angles, bore=st.tuples(*[st.floats(-10, 10)] * 3), gamma=st.floats(-3, 3))
+def test_ins_from_camera_inverts_camera_pose(att, bore, gamma) -> None:
+    m = mounting(boresight=bore, lever=(0.4, -0.3, -1.2))
+    P = np.array([691000.0, 5334000.0, 520.0])
+    pose = camera_pose(P, att, m, gamma)
+    P2, att2 = ins_from_camera(pose, m, gamma)
+    np.testing.assert_allclose(P2, P, atol=1e-8)
+    np.testing.assert_allclose(ned_from_body(att2), ned_from_body(att), atol=1e-12)
+    R, C = camera_pose_arrays(P[None], np.array(att)[None], m, gamma)
+    np.testing.assert_allclose(R[0], pose.R_world_from_cam, atol=1e-15)
+    np.testing.assert_allclose(C[0], pose.center, atol=1e-9)
+
+
 times_st = st.lists(st.floats(0.01, 5.0), min_size=2, max_size=12).map(lambda d: np.cumsum(d) - 1.0)
 
 
@@ -370,3 +386,14 @@ def test_prior_poses_with_time_delay_from_frames_and_other_mounting() -> None:
     np.testing.assert_allclose(z, EAST, atol=1e-12)
     with pytest.raises(GeorefError, match="true"):
         prior_poses(manifest(P, [[0, 0, 0]] * 3, crs="model", heading_reference="true"), None)
+
+
+def test_doctests() -> None:
+    import doctest
+
+    import db.crs
+    import workers.pipeline.georef as georef
+
+    for mod in (georef, db.crs):
+        result = doctest.testmod(mod)
+        assert result.attempted > 0 and result.failed == 0, mod.__name__

@@ -46,7 +46,9 @@ __all__ = [
     "attitude_from_ned_from_body",
     "body_from_cam",
     "camera_pose",
+    "camera_pose_arrays",
     "camera_poses",
+    "ins_from_camera",
     "meridian_convergence_deg",
     "model_positions",
     "ned_from_body",
@@ -145,6 +147,19 @@ def _poses_from_rotations(
     return R_wc, C
 
 
+def camera_pose_arrays(
+    positions_world: np.ndarray,
+    attitudes_deg: np.ndarray,
+    mounting: Mounting,
+    convergence_deg: np.ndarray | float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Array form of `camera_poses`: -> (`R_world_from_cam` `(N, 3, 3)`, centres `(N, 3)` world)."""
+    P = np.asarray(positions_world, dtype=np.float64).reshape(-1, 3)
+    att = np.asarray(attitudes_deg, dtype=np.float64).reshape(-1, 3)
+    gamma = np.broadcast_to(np.asarray(convergence_deg, dtype=np.float64), (len(P),))
+    return _poses_from_rotations(P, ned_from_body(att), mounting, gamma)
+
+
 def camera_poses(
     positions_world: np.ndarray,
     attitudes_deg: np.ndarray,
@@ -153,11 +168,24 @@ def camera_poses(
 ) -> list[Pose]:
     """Vectorised `camera_pose`: positions `(N, 3)` world metres, attitudes `(N, 3)` degrees,
     convergence `(N,)` or scalar degrees (0 for grid headings) -> N poses."""
-    P = np.asarray(positions_world, dtype=np.float64).reshape(-1, 3)
-    att = np.asarray(attitudes_deg, dtype=np.float64).reshape(-1, 3)
-    gamma = np.broadcast_to(np.asarray(convergence_deg, dtype=np.float64), (len(P),))
-    R_wc, C = _poses_from_rotations(P, ned_from_body(att), mounting, gamma)
-    return [Pose(R_wc[i], C[i]) for i in range(len(P))]
+    R_wc, C = camera_pose_arrays(positions_world, attitudes_deg, mounting, convergence_deg)
+    return [Pose(R_wc[i], C[i]) for i in range(len(C))]
+
+
+def ins_from_camera(
+    pose: Pose, mounting: Mounting, convergence_deg: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of `camera_pose`: the GNSS/INS solution that yields `pose` with `mounting`.
+
+    Returns (IMU reference point `(3,)` in world metres, `[roll, pitch, heading]` degrees, the
+    heading true when `convergence_deg` is given, grid otherwise). Used to write synthetic
+    manifests from designed camera poses.
+    """
+    R_world_from_body = pose.R_world_from_cam @ body_from_cam(mounting).T
+    R_grid = R_WORLD_FROM_NED.T @ R_world_from_body
+    R_ned_from_body = Rz(np.radians(convergence_deg)) @ R_grid
+    L = np.asarray(mounting.lever_arm_m, dtype=np.float64).reshape(3)
+    return pose.center - R_world_from_body @ L, attitude_from_ned_from_body(R_ned_from_body)
 
 
 def camera_pose(
