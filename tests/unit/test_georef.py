@@ -397,3 +397,21 @@ def test_doctests() -> None:
     for mod in (georef, db.crs):
         result = doctest.testmod(mod)
         assert result.attempted > 0 and result.failed == 0, mod.__name__
+
+
+@pytest.mark.parametrize(
+    "M, look, right",
+    [
+        ([[0, 0, 1], [1, 0, 0], [0, 1, 0]], NORTH, EAST),  # forward
+        ([[-1, 0, 0], [0, 0, 1], [0, 1, 0]], EAST, -NORTH),  # to the right
+        ([[1, 0, 0], [0, 0, -1], [0, 1, 0]], -EAST, NORTH),  # to the left
+        ([[0, -1, 0], [1, 0, 0], [0, 0, 1]], -UP, EAST),  # down, image top forward
+    ],
+)
+def test_mountings_documented_in_docs(M, look, right) -> None:
+    """The table of common mountings in docs/sequence-format.md (heading 0: forward = north)."""
+    M = np.asarray(M, float)
+    assert np.linalg.det(M) == pytest.approx(1.0)
+    x, _, z = axes(camera_pose([0, 0, 0], [0, 0, 0], mounting(M=M)))
+    np.testing.assert_allclose(z, look, atol=1e-12)
+    np.testing.assert_allclose(x, right, atol=1e-12)
