@@ -57,8 +57,8 @@ __all__ = [
 ]
 
 MANIFEST = "sequence.json"
-DEFAULT_MAX_BYTES = 16 * 1024**3  # 16 GiB expanded
-DEFAULT_MAX_MEMBERS = 200_000
+DEFAULT_MAX_BYTES = 20 * 1024**3  # 20 GiB expanded, as `Settings.max_package_bytes`
+DEFAULT_MAX_MEMBERS = 200_000  # as `Settings.max_package_members`
 TIFF_SUFFIXES = (".tif", ".tiff")
 
 
