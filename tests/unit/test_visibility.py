@@ -1,0 +1,95 @@
+"""Visibility: frustum test, geometric texel tests, occlusion through the whole scene."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tests.unit.texture_scene import box_building, field, look_at, render
+from workers.pipeline.camera import Camera
+from workers.pipeline.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.sequence import Radiometry
+from workers.pipeline.units import ArrayFrameSource, plan_units, texture_unit
+from workers.pipeline.visibility import VisibilityOptions, boxes_in_frustum, project_texels
+
+CAM = Camera(200, 160, 180.0, 180.0, 99.5, 79.5, k1=-0.08)
+
+
+def test_frustum_test_is_conservative_and_rejects_what_cannot_be_seen():
+    pose = look_at([0, 0, 0], [0, 10, 0])
+    rng = np.random.default_rng(3)
+    lo = rng.uniform([-60, -60, -20], [60, 60, 20], size=(400, 3))
+    hi = lo + rng.uniform(0.2, 6.0, size=(400, 3))
+    inside = boxes_in_frustum(CAM, pose, lo, hi)
+    # any box with a corner projecting into the image must pass
+    for k in range(len(lo)):
+        corners = np.array([[(hi if i & m else lo)[k][a] for a, m in enumerate((1, 2, 4))] for i in range(8)])
+        uv, depth = pose.project(CAM, corners)
+        xc = pose.cam_from_world(corners)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            in_fov = np.all(np.abs(xc[:, :2] / xc[:, 2:]) < 1.0, axis=1)  # (the polynomial folds beyond)
+        if np.any((depth > 0.5) & in_fov & CAM.in_image(uv)):
+            assert inside[k]
+    assert not boxes_in_frustum(CAM, pose, [[-1, -20, -1]], [[1, -10, 1]])[0]  # behind
+    assert not boxes_in_frustum(CAM, pose, [[40, 5, -1]], [[42, 8, 1]])[0]  # far right
+    assert not boxes_in_frustum(CAM, pose, [[-1, 900, -1]], [[1, 901, 1]])[0]  # beyond range
+    assert boxes_in_frustum(CAM, pose, [[-1, 10, -1]], [[1, 12, 1]])[0]
+
+
+def test_geometric_tests_on_texels():
+    b = box_building("B", 0, 0, 10, 8, 6)
+    pose = look_at([5, -12, 1.6], [5, 0, 3])
+    south, north = b.polygons[0], b.polygons[2]
+    pts = np.array([[5.0, 0, 3], [0.2, 0, 0.5], [9.8, 0, 5.9]])
+    proj = project_texels(CAM, pose, pts, np.array([0, -1.0, 0]), VisibilityOptions())
+    assert proj.ok[0]
+    uv, _ = pose.project(CAM, pts)
+    assert np.allclose(proj.uv[proj.ok], uv[proj.ok])
+    assert np.all(proj.ok == CAM.in_image(uv, margin=1.0))
+    # the north wall faces away: nothing passes
+    back = project_texels(CAM, pose, np.array([[5.0, 8, 3]]), np.array([0, 1.0, 0]), VisibilityOptions())
+    assert not back.ok.any()
+    assert south.id == "B_w0" and north.id == "B_w2"
+
+
+def _segment_hits_box(p: np.ndarray, q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(N,) bool: segment p->q (N,3 each) passes through the open box (slab test)."""
+    d = q - p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo - p) / d
+        t2 = (hi - p) / d
+    tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+    tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+    return (tmax > np.maximum(tmin, 0.0) + 1e-6) & (tmin < 1.0 - 1e-6)
+
+
+def test_a_building_hidden_behind_another_gets_no_texels_from_the_frames_where_it_is_hidden():
+    front = box_building("FRONT", 0, 0, 12, 6, 10)
+    back = box_building("BACK", 0, 20, 12, 28, 8)
+    poses = [look_at([6, -15, 1.6], [6, 20, 4])]  # back wall entirely hidden
+    poses += [look_at([x, -15, 1.6], [6, 24, 4]) for x in (-14, -10, 24)]  # partly hidden
+    poses += [look_at([6 + dx, 13, 1.6], [6 + dx, 20, 4]) for dx in (-2, 2)]  # between: visible
+    frames = {i: render(CAM, p, [front, back]) for i, p in enumerate(poses)}
+    units = plan_units([front, back], CAM, poses, ArrayFrameSource(frames), Radiometry(), targets=["BACK"])
+    (unit,) = units
+    assert [o.id for o in unit.occluders] == ["FRONT"]
+    assert 0 in unit.frames
+    rc = RayCaster(build_scene_mesh([unit.building, *unit.occluders]))
+    tex = texture_unit(unit, dict(zip(unit.frames, unit.poses, strict=True)), rc)
+    k = [p.id for p in tex.polygons].index("BACK_w0")
+    grid, fused = tex.grids[k], tex.textures[k]
+    used = np.unique(fused.frame[fused.observed])
+    assert 0 not in used
+    assert {4, 5} <= set(used.tolist())
+    lo, hi = np.array([0.0, 0, 0]), np.array([12.0, 6, 10])
+    partly_hidden_used = 0
+    for f in used:
+        r, c = np.nonzero(fused.frame == f)
+        pts = grid.centres(r, c)
+        hidden = _segment_hits_box(pts, np.broadcast_to(poses[f].center, pts.shape), lo, hi)
+        assert not hidden.any(), f"frame {f} gave {hidden.sum()} texels hidden by FRONT"
+        partly_hidden_used += f in (1, 2, 3)
+    # the values are the back wall's, never the occluder's
+    r, c = np.nonzero(fused.observed)
+    err = fused.value[r, c] - field(grid.centres(r, c))
+    assert np.sqrt(np.mean(err**2)) < 0.2
+    assert partly_hidden_used >= 1

@@ -1,0 +1,258 @@
+"""Texture extraction and fusion: sampling frames onto texel grids and combining observations.
+
+In: float32 physical frames `(H, W)` (kelvin or the sequence's unit), pixel positions of texel
+centres `(N, 2)` (pixel centres at integers), camera, pose and surface axes (model CRS, metres).
+Out: per texel a physical value, its observation quality (local resolution in metres on the
+surface per image pixel along `s` and `t`, viewing angle, distance), and a fused texture per
+surface that records which frame every texel came from.
+
+Fusion follows Hoegner & Stilla: frames are taken in recording order; per texel the observation
+with the best (smallest) local resolution wins; before a frame's partial texture is merged it is
+aligned to what has been fused so far by sub-texel phase correlation on the overlap (shift
+bounded, rejected when the correlation peak is weak or the overlap has no contrast).
+No 8-bit conversion happens anywhere on this path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.pose import Pose
+from workers.pipeline.texalign import AlignOptions, align_partial
+from workers.pipeline.texel import TexelGrid
+from workers.pipeline.visibility import (
+    OcclusionScene,
+    TexelProjection,
+    VisibilityOptions,
+    boxes_in_frustum,
+    consistent_samples,
+    facing,
+    project_texels,
+)
+
+
+@dataclass(frozen=True)
+class FusionOptions:
+    """Options of the fusion stage.
+
+    Attributes:
+        align: align each frame's partial texture to the fused one before merging.
+        alignment: options of that alignment (phase correlation, bounds, rejection).
+        deadband_texels: estimated shifts shorter than this are treated as zero (estimation noise).
+        improve_factor: a later observation replaces a fused texel only when its local
+            resolution is smaller than `improve_factor` × the fused one.
+    """
+
+    align: bool = True
+    alignment: AlignOptions = field(default_factory=AlignOptions)
+    deadband_texels: float = 0.1
+    improve_factor: float = 1.0
+
+
+def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of `image (H, W)` at pixels `uv (N, 2)` -> `(N,)` float32.
+
+    Pixel centres at integer coordinates. Positions are clamped to the image (the outermost
+    half pixel repeats the border pixel); callers keep texels inside the frame with a margin.
+    Computed in float32 arithmetic with exact (not fixed-point) weights.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    H, W = img.shape
+    u = np.clip(np.asarray(uv[:, 0], dtype=np.float64), 0.0, W - 1.0)
+    v = np.clip(np.asarray(uv[:, 1], dtype=np.float64), 0.0, H - 1.0)
+    u0 = np.minimum(np.floor(u).astype(np.intp), W - 2) if W > 1 else np.zeros(len(u), np.intp)
+    v0 = np.minimum(np.floor(v).astype(np.intp), H - 2) if H > 1 else np.zeros(len(v), np.intp)
+    fu = (u - u0).astype(np.float32)
+    fv = (v - v0).astype(np.float32)
+    flat = img.ravel()
+    i00 = v0 * W + u0
+    u1 = 1 if W > 1 else 0
+    v1 = W if H > 1 else 0
+    top = flat[i00] * (1 - fu) + flat[i00 + u1] * fu
+    bot = flat[i00 + v1] * (1 - fu) + flat[i00 + v1 + u1] * fu
+    return (top * (1 - fv) + bot * fv).astype(np.float32)
+
+
+def local_resolution(
+    camera: Camera, pose: Pose, points: np.ndarray, s_axis: np.ndarray, t_axis: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local resolution of a frame on a surface at `points (N, 3)` -> `(res_s, res_t)` `(N,)` each,
+    metres on the surface per image pixel along the surface axes `s_axis`, `t_axis` `(3,)`.
+
+    From the Jacobian of the pinhole projection (distortion changes it by a few per cent at the
+    image corners and is ignored here: the figure ranks observations, it does not map them).
+    """
+    xc = (np.asarray(points, dtype=np.float64) - pose.center) @ pose.R_world_from_cam
+    z = xc[:, 2]
+    a = xc[:, 0] / z
+    b = xc[:, 1] / z
+    out = []
+    for axis in (s_axis, t_axis):
+        e = pose.R_world_from_cam.T @ axis  # direction in the camera frame
+        du = camera.fx * (e[0] - a * e[2]) / z
+        dv = camera.fy * (e[1] - b * e[2]) / z
+        out.append(1.0 / np.maximum(np.hypot(du, dv), 1e-12))
+    return out[0], out[1]
+
+
+@dataclass(eq=False)
+class SurfaceTexture:
+    """Fused texture of one surface, built frame by frame (mutable; lives inside one unit).
+
+    Attributes:
+        value: `(H, W)` float32 physical values, NaN where not observed.
+        resolution: `(H, W)` float32 local resolution of the chosen observation, m/px (inf: none).
+        view_angle: `(H, W)` float32 viewing angle of the chosen observation, degrees.
+        frame: `(H, W)` int32 frame index each texel came from (-1: none).
+        shifts: frame index -> applied alignment shift `(dx, dy)` in texels.
+    """
+
+    value: np.ndarray
+    resolution: np.ndarray
+    view_angle: np.ndarray
+    frame: np.ndarray
+    shifts: dict[int, tuple[float, float]] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, shape: tuple[int, int]) -> SurfaceTexture:
+        """An unobserved texture of `shape (H, W)`."""
+        return cls(
+            value=np.full(shape, np.nan, np.float32),
+            resolution=np.full(shape, np.inf, np.float32),
+            view_angle=np.full(shape, np.nan, np.float32),
+            frame=np.full(shape, -1, np.int32),
+        )
+
+    @property
+    def observed(self) -> np.ndarray:
+        """`(H, W)` bool, texel has a value."""
+        return self.frame >= 0
+
+    def partial(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """A raster `(H, W)` float32 holding `values (N,)` at `rows, cols` and NaN elsewhere."""
+        out = np.full(self.value.shape, np.nan, np.float32)
+        out[rows, cols] = values
+        return out
+
+    def merge(
+        self,
+        rows: np.ndarray,
+        cols: np.ndarray,
+        values: np.ndarray,
+        resolution: np.ndarray,
+        view_angle: np.ndarray,
+        frame_index: int,
+        improve_factor: float = 1.0,
+    ) -> int:
+        """Merge one frame's observations `(N,)` at texels `rows, cols`; a texel takes the new value
+        when it had none or the new local resolution is smaller. Returns the number of texels taken."""
+        res = np.asarray(resolution, dtype=np.float32)
+        better = res < self.resolution[rows, cols] * np.float32(improve_factor)
+        better &= np.isfinite(values)
+        r, c = rows[better], cols[better]
+        self.value[r, c] = values[better]
+        self.resolution[r, c] = res[better]
+        self.view_angle[r, c] = view_angle[better]
+        self.frame[r, c] = frame_index
+        return int(better.sum())
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceTexels:
+    """A texel grid with its texels inside the polygon flattened for projection.
+
+    Attributes:
+        grid: the surface's `TexelGrid`.
+        rows, cols: `(N,)` intp raster indices of the texels inside the polygon.
+        points: `(N, 3)` float64 world centres of those texels.
+        lo, hi: `(3,)` bounds of `points` (for the frustum test).
+    """
+
+    grid: TexelGrid
+    rows: np.ndarray
+    cols: np.ndarray
+    points: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @classmethod
+    def of(cls, grid: TexelGrid) -> SurfaceTexels:
+        """Flatten the texels of `grid` inside its polygon."""
+        rows, cols = grid.masked_indices()
+        pts = grid.centres(rows, cols)
+        lo = pts.min(axis=0) if len(pts) else grid.corner
+        hi = pts.max(axis=0) if len(pts) else grid.corner
+        return cls(grid=grid, rows=rows, cols=cols, points=pts, lo=lo, hi=hi)
+
+
+def texture_frame(
+    image: np.ndarray,
+    camera: Camera,
+    pose: Pose,
+    frame_index: int,
+    surfaces: Sequence[SurfaceTexels],
+    textures: Sequence[SurfaceTexture],
+    scene: OcclusionScene | None,
+    visibility: VisibilityOptions,
+    fusion: FusionOptions,
+) -> int:
+    """Extract one frame's observations for every surface and merge them into `textures`.
+
+    Args:
+        image: `(H, W)` float32 physical values of frame `frame_index`.
+        camera, pose: its interior and exterior orientation (world = model CRS).
+        surfaces, textures: the surfaces of one building and their fused textures (same order).
+        scene: the scene (building and occluders) for the occlusion test, or None (no test).
+
+    Returns the number of texels this frame observed (before the best-resolution selection).
+    """
+    if not surfaces:
+        return 0
+    lo = np.stack([s.lo for s in surfaces])
+    hi = np.stack([s.hi for s in surfaces])
+    candidates = boxes_in_frustum(camera, pose, lo, hi, visibility)
+    picked: list[tuple[int, np.ndarray, TexelProjection]] = []
+    for k in np.nonzero(candidates)[0]:
+        surf = surfaces[k]
+        if len(surf.points) == 0 or not facing(surf.grid.normal, surf.grid.corner, pose.center):
+            continue
+        proj = project_texels(camera, pose, surf.points, surf.grid.normal, visibility)
+        idx = np.nonzero(proj.ok)[0]
+        if len(idx):
+            picked.append((int(k), idx, proj))
+    if not picked:
+        return 0
+    if scene is not None:
+        buffer = scene.buffer(pose, np.concatenate([proj.uv[idx] for _, idx, proj in picked]))
+    observed = 0
+    for k, idx, proj in picked:
+        if scene is not None:
+            own = scene.polygon_index.get(surfaces[k].grid.polygon_id, -2)
+            idx = idx[consistent_samples(buffer, proj.uv[idx], proj.distance[idx], own, visibility)]
+        if len(idx) == 0:
+            continue
+        surf, tex = surfaces[k], textures[k]
+        rows, cols = surf.rows[idx], surf.cols[idx]
+        uv = proj.uv[idx]
+        values = sample_bilinear(image, uv)
+        if fusion.align and tex.observed.any():
+            shift = align_partial(tex.value, tex.partial(rows, cols, values), fusion.alignment)
+            if shift is not None and math.hypot(shift[0], shift[1]) >= fusion.deadband_texels:
+                dx, dy, _ = shift
+                xy = np.stack([cols + 0.5 + dx, rows + 0.5 + dy], axis=1)
+                uv_s, _ = pose.project(camera, surf.grid.points_at(xy))
+                inside = camera.in_image(uv_s, margin=0.0)
+                values = np.where(inside, sample_bilinear(image, np.nan_to_num(uv_s)), np.nan).astype(
+                    np.float32
+                )
+                tex.shifts[frame_index] = (dx, dy)
+        res_s, res_t = local_resolution(camera, pose, surf.points[idx], surf.grid.s_axis, surf.grid.t_axis)
+        angle = np.degrees(np.arccos(np.clip(proj.cos_view[idx], -1.0, 1.0))).astype(np.float32)
+        tex.merge(rows, cols, values, np.maximum(res_s, res_t), angle, frame_index, fusion.improve_factor)
+        observed += len(idx)
+    return observed

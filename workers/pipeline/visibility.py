@@ -1,0 +1,254 @@
+"""Visibility of buildings and texels in a frame.
+
+In: a `Camera`, a `Pose` (world = model CRS, metres), axis-aligned boxes or texel centres
+`(N, 3)` with their surface normal, and a `RayCaster` over the scene (the building and every
+building that can occlude it). Out: cheap per-box frustum decisions, and per texel the pixel
+position `(N, 2)` (pixel centres at integers), the depth and a visibility mask.
+
+A texel is visible when it projects inside the frame (with a margin), lies in front of the
+camera, its surface faces the camera within a maximum viewing angle, and nothing in the scene
+lies between it and the projection centre.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+
+
+@dataclass(frozen=True)
+class VisibilityOptions:
+    """Options of the visibility stage.
+
+    Attributes:
+        margin_px: texels projecting closer than this to the frame border are not used.
+        min_depth_m: texels closer to the camera than this (along the optical axis) are not used.
+        max_distance_m: texels farther than this from the projection centre are not used.
+        max_view_angle_deg: largest angle between the surface normal and the ray to the camera.
+        occlusion_tolerance_m: rays stop this far short of the texel (its own surface); used by
+            `unoccluded` (point-wise test).
+        depth_tolerance_m, depth_tolerance_rel: a pixel read by bilinear sampling belongs to the
+            texel's surface when it sees the texel's polygon or something at the texel's distance
+            within `depth_tolerance_m + depth_tolerance_rel · distance`.
+    """
+
+    margin_px: float = 1.0
+    min_depth_m: float = 0.5
+    max_distance_m: float = 500.0
+    max_view_angle_deg: float = 80.0
+    occlusion_tolerance_m: float = 0.05
+    depth_tolerance_m: float = 0.3
+    depth_tolerance_rel: float = 0.02
+
+
+def frustum_planes(camera: Camera, pose: Pose, margin_px: float = 0.0) -> np.ndarray:
+    """Side planes of the viewing frustum in world coordinates, `(4, 4)` rows `[n, d]` with
+    `n · X + d >= 0` inside. Built through the projection centre and the rays of the four image
+    corners and edge midpoints (distortion included), so that it slightly over-covers the frame.
+    """
+    w, h = camera.width - 1.0, camera.height - 1.0
+    m = -margin_px
+    # corners plus edge midpoints: with barrel distortion the edge midpoints bulge outward
+    border = np.array(
+        [
+            [m, m],
+            [w / 2, m],
+            [w - m, m],
+            [w - m, h / 2],
+            [w - m, h - m],
+            [w / 2, h - m],
+            [m, h - m],
+            [m, h / 2],
+        ]
+    )
+    rays_c = camera.bearing(border)
+    # over-cover: take the widest normalised extent in each direction
+    ab = rays_c[:, :2] / rays_c[:, 2:]
+    a_lo, a_hi = ab[:, 0].min(), ab[:, 0].max()
+    b_lo, b_hi = ab[:, 1].min(), ab[:, 1].max()
+    # planes in camera frame through the origin: a >= a_lo  <=>  x - a_lo z >= 0, etc.
+    n_c = np.array([[1.0, 0.0, -a_lo], [-1.0, 0.0, a_hi], [0.0, 1.0, -b_lo], [0.0, -1.0, b_hi]])
+    n_w = n_c @ pose.R_world_from_cam.T
+    d = -n_w @ pose.center
+    return np.concatenate([n_w, d[:, None]], axis=1)
+
+
+def boxes_in_frustum(
+    camera: Camera,
+    pose: Pose,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    options: VisibilityOptions = VisibilityOptions(),
+) -> np.ndarray:
+    """Conservative test of axis-aligned boxes `lo, hi (B, 3)` against a frame's frustum -> `(B,)` bool.
+
+    False only when the box surely cannot appear: entirely behind the near plane, beyond
+    `max_distance_m`, or entirely outside one side plane.
+    """
+    lo = np.atleast_2d(np.asarray(lo, dtype=np.float64))
+    hi = np.atleast_2d(np.asarray(hi, dtype=np.float64))
+    corners = np.stack(
+        [np.where(np.array([i & 1, i & 2, i & 4], dtype=bool), hi, lo) for i in range(8)], axis=1
+    )  # (B, 8, 3)
+    planes = frustum_planes(camera, pose, margin_px=2.0)
+    side = corners @ planes[:, :3].T + planes[:, 3]  # (B, 8, 4)
+    outside_side = np.any(np.all(side < 0, axis=1), axis=1)
+    z = (corners - pose.center) @ pose.R_world_from_cam[:, 2]  # depth along the optical axis
+    behind = np.all(z < options.min_depth_m, axis=1)
+    nearest = np.linalg.norm(np.clip(pose.center, lo, hi) - pose.center, axis=1)
+    too_far = nearest > options.max_distance_m
+    return ~(outside_side | behind | too_far)
+
+
+def facing(normal: np.ndarray, point: np.ndarray, center: np.ndarray) -> bool:
+    """True when `center (3,)` lies on the front side of the plane with unit `normal (3,)`
+    through `point (3,)`: a cheap per-surface reject before any texel is projected."""
+    return float(np.dot(np.asarray(center) - np.asarray(point), normal)) > 0.0
+
+
+def unoccluded(
+    raycaster: RayCaster | None, points: np.ndarray, center: np.ndarray, options: VisibilityOptions
+) -> np.ndarray:
+    """`(N,)` bool: nothing in the ray caster's scene lies between `center (3,)` and `points (N, 3)`
+    (all True without a ray caster)."""
+    if raycaster is None or len(points) == 0:
+        return np.ones(len(points), dtype=bool)
+    return raycaster.visible(points, center, tolerance_m=options.occlusion_tolerance_m)
+
+
+@dataclass(frozen=True, eq=False)
+class TexelProjection:
+    """Where texels land in one frame.
+
+    Attributes:
+        uv: `(N, 2)` float64 pixels (NaN where behind the camera).
+        depth: `(N,)` depth along the optical axis, metres.
+        distance: `(N,)` distance to the projection centre, metres.
+        cos_view: `(N,)` cosine of the angle between the surface normal and the ray to the camera.
+        ok: `(N,)` bool, geometric tests passed (inside the frame, in front, facing, in range);
+            occlusion is not yet tested.
+    """
+
+    uv: np.ndarray
+    depth: np.ndarray
+    distance: np.ndarray
+    cos_view: np.ndarray
+    ok: np.ndarray
+
+
+def project_texels(
+    camera: Camera, pose: Pose, points: np.ndarray, normal: np.ndarray, options: VisibilityOptions
+) -> TexelProjection:
+    """Project texel centres `points (N, 3)` of one surface (unit `normal (3,)`) into a frame and
+    apply the geometric visibility tests (not occlusion)."""
+    pts = np.asarray(points, dtype=np.float64)
+    to_cam = pose.center - pts
+    distance = np.linalg.norm(to_cam, axis=1)
+    cos_view = (to_cam @ normal) / np.maximum(distance, 1e-12)
+    xc = (pts - pose.center) @ pose.R_world_from_cam
+    depth = xc[:, 2]
+    ok = (
+        (cos_view > math.cos(math.radians(options.max_view_angle_deg)))
+        & (depth > options.min_depth_m)
+        & (distance < options.max_distance_m)
+    )
+    # inside the frustum: also keeps points far outside the field of view, which the distortion
+    # polynomial can fold back into the image, from projecting at all
+    planes = frustum_planes(camera, pose, margin_px=1.0)
+    ok &= np.all(pts @ planes[:, :3].T + planes[:, 3] >= 0.0, axis=1)
+    uv = np.full((len(pts), 2), np.nan)
+    if ok.any():
+        uv[ok] = camera.project(xc[ok])
+        ok &= camera.in_image(uv, margin=options.margin_px)
+    return TexelProjection(uv=uv, depth=depth, distance=distance, cos_view=cos_view, ok=ok)
+
+
+def pixel_rays(camera: Camera) -> np.ndarray:
+    """Unit rays `(H, W, 3)` float32 through every pixel centre, camera frame (distortion removed).
+
+    Computed once per camera and unit; a frame's world rays are `rays @ R_world_from_camᵀ`.
+    """
+    uu, vv = np.meshgrid(
+        np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64)
+    )
+    rays = camera.bearing(np.stack([uu.ravel(), vv.ravel()], axis=1))
+    return rays.reshape(camera.height, camera.width, 3).astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class HitBuffer:
+    """What every pixel of a window of a frame sees: first-hit distance and polygon.
+
+    Attributes:
+        u0, v0: pixel of the window's top-left element.
+        t: `(h, w)` float32 distance from the projection centre to the first hit (inf: nothing).
+        polygon: `(h, w)` int32 index into the scene's `polygon_ids` (-1: nothing).
+    """
+
+    u0: int
+    v0: int
+    t: np.ndarray
+    polygon: np.ndarray
+
+
+def hit_buffer(raycaster: RayCaster, rays: np.ndarray, pose: Pose, uv: np.ndarray) -> HitBuffer:
+    """Cast the pixel rays `rays (H, W, 3)` of the window covering pixels `uv (N, 2)` (plus one
+    pixel) from the projection centre of `pose` through the scene."""
+    H, W = rays.shape[:2]
+    u0 = max(int(np.floor(np.nanmin(uv[:, 0]))) - 1, 0)
+    v0 = max(int(np.floor(np.nanmin(uv[:, 1]))) - 1, 0)
+    u1 = min(int(np.ceil(np.nanmax(uv[:, 0]))) + 2, W)
+    v1 = min(int(np.ceil(np.nanmax(uv[:, 1]))) + 2, H)
+    win = rays[v0:v1, u0:u1].reshape(-1, 3).astype(np.float64) @ pose.R_world_from_cam.T
+    hits = raycaster.cast(np.broadcast_to(pose.center, win.shape), win)
+    shape = (v1 - v0, u1 - u0)
+    return HitBuffer(
+        u0=u0,
+        v0=v0,
+        t=hits.t.astype(np.float32).reshape(shape),
+        polygon=hits.polygon.astype(np.int32).reshape(shape),
+    )
+
+
+def consistent_samples(
+    buffer: HitBuffer, uv: np.ndarray, distance: np.ndarray, polygon: int, options: VisibilityOptions
+) -> np.ndarray:
+    """`(N,)` bool: all four pixels that bilinear sampling at `uv (N, 2)` reads see the texel's own
+    surface — their first hit is the texel's `polygon` or lies at the texel's `distance (N,)`
+    within `depth_tolerance_m + depth_tolerance_rel · distance`. This is the occlusion test (an
+    occluder in front fails it) and keeps samples from mixing the surface with the sky, the
+    background or an occluder at silhouette edges."""
+    h, w = buffer.t.shape
+    c0 = np.floor(uv[:, 0]).astype(np.intp) - buffer.u0
+    r0 = np.floor(uv[:, 1]).astype(np.intp) - buffer.v0
+    tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
+    ok = np.ones(len(uv), dtype=bool)
+    for dr in (0, 1):
+        for dc in (0, 1):
+            r = np.clip(r0 + dr, 0, h - 1)
+            c = np.clip(c0 + dc, 0, w - 1)
+            same = buffer.polygon[r, c] == polygon
+            near = np.abs(buffer.t[r, c] - distance) <= tol
+            ok &= same | near
+    return ok
+
+
+class OcclusionScene:
+    """Everything the per-texel occlusion test needs for one unit: the ray caster over the scene
+    (building and occluders), the camera's pixel rays, and the scene index of each polygon id.
+    Not picklable (holds the ray caster); build one per unit."""
+
+    def __init__(self, raycaster: RayCaster, camera: Camera) -> None:
+        self.raycaster = raycaster
+        self.rays = pixel_rays(camera)
+        self.polygon_index = raycaster.mesh.polygon_index()
+
+    def buffer(self, pose: Pose, uv: np.ndarray) -> HitBuffer:
+        """Hit buffer of the frame at `pose` over the window covering `uv (N, 2)`."""
+        return hit_buffer(self.raycaster, self.rays, pose, uv)
