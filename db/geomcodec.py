@@ -84,6 +84,8 @@ class EncodedPolygons:
         normal: `(P, 3)` unit plane normals (right-hand rule of the exterior ring; NaN if degenerate).
         offset: `(P,)` plane offsets, `normal · x = offset`, metres.
         area: `(P,)` areas (exterior minus holes), m².
+        planarity: `(P,)` largest distance of any vertex (all rings) from the plane, m.
+        min_vertices: `(P,)` fewest vertices of any ring, closing vertex not counted.
     """
 
     ewkb: list[str | None]
@@ -91,6 +93,8 @@ class EncodedPolygons:
     normal: np.ndarray
     offset: np.ndarray
     area: np.ndarray
+    planarity: np.ndarray
+    min_vertices: np.ndarray
 
 
 def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
@@ -123,8 +127,10 @@ def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
     normal = np.full((n_poly, 3), np.nan)
     offset = np.full(n_poly, np.nan)
     area = np.full(n_poly, np.nan)
+    planarity = np.full(n_poly, np.nan)
+    min_vertices = np.zeros(n_poly, dtype=np.int64)
     if not closed_rings:
-        return EncodedPolygons(ewkb, closed_flags, normal, offset, area)
+        return EncodedPolygons(ewkb, closed_flags, normal, offset, area, planarity, min_vertices)
     lengths = np.array([c.shape[0] for c in closed_rings])
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     pts = np.concatenate(closed_rings, axis=0)
@@ -162,7 +168,15 @@ def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
     area_acc = np.zeros(n_poly)
     np.add.at(area_acc, ring_poly_a, np.where(ext, ring_area, -ring_area))
     area[pk] = area_acc[pk]
-    return EncodedPolygons(ewkb, closed_flags, normal, offset, area)
+    # non-planarity: max |n · x - offset| over every vertex of the polygon (rings are contiguous)
+    vert_poly = np.repeat(ring_poly_a, lengths)
+    dist = np.abs(np.einsum("ij,ij->i", abs_pts, normal[vert_poly]) - offset[vert_poly])
+    poly_start = np.concatenate([[0], np.flatnonzero(np.diff(vert_poly)) + 1])
+    planarity[vert_poly[poly_start]] = np.maximum.reduceat(dist, poly_start)
+    min_vertices[:] = np.iinfo(np.int64).max
+    np.minimum.at(min_vertices, ring_poly_a, lengths - 1)
+    min_vertices[min_vertices == np.iinfo(np.int64).max] = 0
+    return EncodedPolygons(ewkb, closed_flags, normal, offset, area, planarity, min_vertices)
 
 
 def _footprint_geometry(building: Building, normals: dict[str, np.ndarray]) -> shapely.Geometry | None:

@@ -36,6 +36,7 @@ from db.errors import CityDBError, ModelExistsError
 from db.geomcodec import encode_envelope, encode_footprints, encode_polygons
 from db.ops import copy_rows, create_spatial_indexes, delete_model, drop_spatial_indexes, reserve_ids
 from db.session import make_engine
+from db.surface_checks import full_checks, jsonable, surface_checks
 from workers.pipeline.citymodel import Appearance, Building, ModelHeader, Polygon
 
 __all__ = ["ImportOptions", "ImportSummary", "import_citygml", "model_srid"]
@@ -90,14 +91,16 @@ class ImportOptions:
         defer_spatial_indexes: drop the GiST indexes during the load and rebuild them at the end;
             None = automatically for files larger than `defer_above_bytes`.
         defer_above_bytes: file size above which indexes are deferred automatically.
-        run_checks: run the reader's per-polygon geometry checks and store them.
+        checks: geometry checks stored per surface: "fast" (vectorised over the batch: vertex
+            count, planarity, area, unclosed rings), "full" (`db.citygml.checks.check_building`,
+            adding self-intersection and outward wall normals; about 20 ms per building) or "none".
         huge_tree: passed to the reader (lift libxml2 limits for unusual files).
     """
 
     batch_size: int = 250
     defer_spatial_indexes: bool | None = None
     defer_above_bytes: int = 100 * 1024**2
-    run_checks: bool = True
+    checks: str = "fast"
     huge_tree: bool = False
 
 
@@ -148,49 +151,6 @@ def _engine(db: Engine | Any) -> Engine:
     raise CityDBError(f"cannot get a database engine from {db!r}")
 
 
-def _polygon_checks() -> Any:
-    """The reader family's per-polygon check function, if it provides one."""
-    try:
-        from db.citygml import checks
-    except ImportError:
-        return None
-    for name in ("check_polygon", "polygon_checks", "check"):
-        fn = getattr(checks, name, None)
-        if callable(fn):
-            return fn
-    return None
-
-
-def _checks_json(fn: Any, polygon: Polygon) -> Any:
-    """Per-polygon check results as JSON-able data (None when there is no checker)."""
-    if fn is None:
-        return None
-    res = fn(polygon)
-    if res is None:
-        return None
-    if hasattr(res, "to_dict"):
-        res = res.to_dict()
-    elif hasattr(res, "__dataclass_fields__"):
-        from dataclasses import asdict
-
-        res = asdict(res)
-    return Jsonb(_jsonable(res))
-
-
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return _jsonable(v.tolist())
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, float) and not np.isfinite(v):
-        return None
-    return v
-
-
 class _Batch:
     """Rows of one batch of top-level buildings, ready for COPY."""
 
@@ -206,7 +166,7 @@ class _Batch:
 
 
 def _batch_rows(
-    conn: Connection, tops: Sequence[Building], model_id: int, srid: int, ordinal0: int, checker: Any
+    conn: Connection, tops: Sequence[Building], model_id: int, srid: int, ordinal0: int, checks: str
 ) -> _Batch:
     """Turn a batch of top-level buildings (parts nested) into COPY rows with reserved ids."""
     flat: list[tuple[Building, Building, Building | None]] = []  # (building, root, parent)
@@ -223,6 +183,7 @@ def _batch_rows(
     sids = reserve_ids(conn, "surface", len(polys))
     row_of = {id(b): bid for (b, _, _), bid in zip(flat, bids, strict=True)}
     enc = encode_polygons(polys, srid)
+    full = full_checks(tops) if checks == "full" else {}
     normals = {p.id: enc.normal[k] for k, p in enumerate(polys)}
     footprints = encode_footprints([b for b, _, _ in flat], normals, srid)
     batch = _Batch(model_id, srid, ordinal0)
@@ -242,7 +203,7 @@ def _batch_rows(
                 b.name,
                 b.srs_name,
                 b.generated_id,
-                Jsonb(_jsonable(dict(b.attributes))),
+                Jsonb(jsonable(dict(b.attributes))),
                 fp,
                 encode_envelope(lo, hi, srid) if lo is not None else None,
             )
@@ -277,7 +238,7 @@ def _batch_rows(
                     n.tolist() if np.all(np.isfinite(n)) else None,
                     float(enc.offset[k]) if np.isfinite(enc.offset[k]) else None,
                     float(enc.area[k]) if np.isfinite(enc.area[k]) else None,
-                    _checks_json(checker, p),
+                    surface_checks(checks, full, enc, k, p, b.id),
                 )
             )
             k += 1
@@ -409,7 +370,8 @@ def import_citygml(
     t0 = time.perf_counter()
     header = citygml_reader.read_header(path, huge_tree=opts.huge_tree)
     srid = model_srid(header.srs_name)
-    checker = _polygon_checks() if opts.run_checks else None
+    if opts.checks not in ("fast", "full", "none"):
+        raise ValueError(f"ImportOptions.checks must be 'fast', 'full' or 'none', not {opts.checks!r}")
     defer = opts.defer_spatial_indexes
     if defer is None:
         defer = path.stat().st_size > opts.defer_above_bytes
@@ -425,7 +387,7 @@ def import_citygml(
         def flush() -> None:
             nonlocal ordinal
             with engine.begin() as conn:
-                batch = _batch_rows(conn, pending, model_id, srid, ordinal, checker)
+                batch = _batch_rows(conn, pending, model_id, srid, ordinal, opts.checks)
                 _write_batch(conn, batch)
             ordinal = batch.ordinal
             counts["buildings"] += batch.n_buildings

@@ -39,6 +39,7 @@ from sqlalchemy import (
     UniqueConstraint,
     Uuid,
     func,
+    text,
 )
 from sqlalchemy.dialects.postgresql import ARRAY, JSONB
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -281,7 +282,14 @@ class Appearance(Base):
     __table_args__ = (
         Index("ix_appearance_building_theme", "building_id", "theme"),
         Index("ix_appearance_model_theme", "city_model_id", "theme"),
-        Index("ix_appearance_job_building", "job_id", "building_id"),
+        # one appearance per job and building: a result stored twice cannot leave two copies
+        Index(
+            "uq_appearance_job_building",
+            "job_id",
+            "building_id",
+            unique=True,
+            postgresql_where=text("job_id IS NOT NULL"),
+        ),
     )
 
     id: Mapped[int] = mapped_column(BigInteger, primary_key=True)

@@ -196,7 +196,13 @@ def upgrade() -> None:
         sa.PrimaryKeyConstraint("id"),
     )
     op.create_index("ix_appearance_building_theme", "appearance", ["building_id", "theme"], unique=False)
-    op.create_index("ix_appearance_job_building", "appearance", ["job_id", "building_id"], unique=False)
+    op.create_index(
+        "uq_appearance_job_building",
+        "appearance",
+        ["job_id", "building_id"],
+        unique=True,
+        postgresql_where=sa.text("job_id IS NOT NULL"),
+    )
     op.create_index("ix_appearance_model_theme", "appearance", ["city_model_id", "theme"], unique=False)
     op.create_table(
         "frame_pose",
@@ -462,7 +468,7 @@ def downgrade() -> None:
     op.drop_index("ix_frame_pose_building", table_name="frame_pose")
     op.drop_table("frame_pose")
     op.drop_index("ix_appearance_model_theme", table_name="appearance")
-    op.drop_index("ix_appearance_job_building", table_name="appearance")
+    op.drop_index("uq_appearance_job_building", table_name="appearance")
     op.drop_index("ix_appearance_building_theme", table_name="appearance")
     op.drop_table("appearance")
     op.drop_index("ix_job_status", table_name="job")
