@@ -96,3 +96,25 @@ def test_scaled_camera_keeps_rays() -> None:
 
 def test_dict_round_trip() -> None:
     assert Camera.from_dict(TANGENTIAL.to_dict()) == TANGENTIAL
+
+
+def test_points_beyond_the_distortion_fold_do_not_enter_the_image() -> None:
+    # k1 = -0.3: r_d = r (1 - 0.3 r²) folds at r² = 1/0.9; a point ~60° off-axis would come back
+    # to u ≈ 518 px, inside the image, if the model were applied blindly
+    cam = SPEC_K1_STRONG
+    assert cam.max_radius2 == pytest.approx(1 / 0.9)
+    uv = cam.project(np.array([[1.7, 0.0, 1.0], [1.2, 0.9, 1.0], [1.0, 0.0, 1.0]]))
+    assert np.isnan(uv[:2]).all()
+    assert np.isfinite(uv[2]).all() and not cam.in_image(uv[2:]).any()
+    # a pixel whose distorted radius exceeds the model's maximum has no ray
+    assert np.isnan(cam.bearing(np.array([[1100.0, 255.5]]))).all()
+    # monotonic models have no fold
+    assert SPEC_CAMERA.max_radius2 == float("inf")
+    assert Camera(10, 10, 5.0, 5.0, 4.5, 4.5).max_radius2 == float("inf")
+    assert Camera(10, 10, 5.0, 5.0, 4.5, 4.5, k1=0.1, k2=-0.01).max_radius2 > 0
+
+
+def test_every_image_pixel_of_a_wide_strong_lens_has_a_ray() -> None:
+    uv = dense_grid(STRONG, step=8.0)
+    rays = STRONG.bearing(uv)
+    assert np.isfinite(rays).all()

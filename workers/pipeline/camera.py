@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -82,6 +83,23 @@ class Camera:
         """True when any distortion coefficient is non-zero."""
         return bool(np.any(self.dist_coeffs != 0.0))
 
+    @cached_property
+    def max_radius2(self) -> float:
+        """Largest `r² = a² + b²` (undistorted normalised) up to which the radial model is monotonic.
+
+        Beyond it `r_d = r (1 + k1 r² + k2 r⁴ + k3 r⁶)` folds back, and points far outside the
+        field of view would land inside the image: `pixel_from_normalized` returns NaN there.
+        The fold is the first positive root `s = r²` of `1 + 3 k1 s + 5 k2 s² + 7 k3 s³`; inf when
+        there is none (e.g. no distortion).
+        """
+        coeffs = np.array([7.0 * self.k3, 5.0 * self.k2, 3.0 * self.k1, 1.0])
+        nz = np.flatnonzero(coeffs)
+        if nz[0] == 3:
+            return float("inf")
+        roots = np.roots(coeffs[nz[0] :])
+        real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
+        return float(real.min()) if len(real) else float("inf")
+
     # -- normalised <-> distorted ---------------------------------------------------------------
     def distort(self, ab: np.ndarray) -> np.ndarray:
         """Apply distortion to normalised coordinates `(N, 2)` -> distorted normalised `(N, 2)`."""
@@ -126,11 +144,28 @@ class Camera:
             da = (J[..., 1, 1] * residual[..., 0] - J[..., 0, 1] * residual[..., 1]) / det
             db = (-J[..., 1, 0] * residual[..., 0] + J[..., 0, 0] * residual[..., 1]) / det
             ab = ab - np.stack([da, db], axis=-1)
+        # no solution on the monotonic branch (pixel beyond the fold): NaN, never a wrong ray
+        with np.errstate(invalid="ignore"):
+            bad = (np.sum(ab * ab, axis=-1) > self.max_radius2) | (
+                np.max(np.abs(self.distort(ab) - target), axis=-1) > 1e-9
+            )
+        ab[bad] = np.nan
         return ab
 
     # -- pixels ---------------------------------------------------------------------------------
     def pixel_from_normalized(self, ab: np.ndarray) -> np.ndarray:
-        """Undistorted normalised `(N, 2)` -> pixels `(N, 2)` (distortion applied)."""
+        """Undistorted normalised `(N, 2)` -> pixels `(N, 2)` (distortion applied).
+
+        NaN beyond the fold of the distortion model (`r² > max_radius2`), where the model is
+        meaningless and would map far off-axis points into the image.
+        """
+        ab = np.asarray(ab, dtype=np.float64)
+        if np.isfinite(self.max_radius2):
+            with np.errstate(invalid="ignore"):
+                beyond = np.sum(ab * ab, axis=-1) > self.max_radius2
+            if np.any(beyond):
+                ab = ab.copy()
+                ab[beyond] = np.nan
         abd = self.distort(ab)
         return np.stack([self.fx * abd[..., 0] + self.cx, self.fy * abd[..., 1] + self.cy], axis=-1)
 
