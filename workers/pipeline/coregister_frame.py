@@ -1,0 +1,499 @@
+"""Coregistration of one frame to one building: coarse edge-distance search, then iterative
+robust least squares of the six exterior-orientation parameters.
+
+In: `Camera`, building `Wireframe`, `RayCaster` over the scene, the frame's `ImageFeatures`, the
+GNSS/INS prior pose with its information matrix, a start pose. Out: `FrameFit` (refined pose,
+acceptance, residuals, matches, predicted reprojection uncertainty).
+
+Pose parameters: a correction `δ = (ω, dC)` with `R_world_from_cam ← R · exp([ω]×)` (ω in the
+camera frame, radians) and `C ← C + dC` (world, metres). Observations:
+
+- edge samples of the visible wireframe, each matched by a 1-D search along the projected edge's
+  normal for the strongest image gradient parallel to that normal (point-to-line residual),
+- model corners matched to the nearest Förstner or segment-intersection point within a search
+  radius R (2-D residuals),
+- the prior pose as a weighted observation of `δ = 0`.
+
+Weights: class weight of the edge × Tukey biweight of the residual; R shrinks with the fit.
+A coarse stage first minimises the mean truncated distance-transform value of the projected edge
+samples (correspondence-free) over depth offsets along the optical axis and image shifts
+(`cv2.matchTemplate` on a downsampled pyramid level), so that metres and degrees of prior error
+are recovered before the local adjustment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.features import ImageFeatures
+from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+
+
+@dataclass(frozen=True)
+class FrameFitOptions:
+    """Parameters of the per-frame adjustment (pixels, metres, degrees)."""
+
+    # coarse stage: pyramid level (downsampling factor) of the distance-transform search
+    coarse_level: int = 4
+    # coarse stage: largest image shift searched, full-resolution pixels
+    coarse_radius_px: float = 160.0
+    # coarse stage: depth offsets along the optical axis, as shares of the median sample depth ...
+    coarse_depth_steps: tuple[float, ...] = (-0.3, -0.15, 0.0, 0.15, 0.3)
+    # ... capped at this many metres
+    coarse_max_depth_m: float = 6.0
+    # coarse stage: penalty per level pixel of shift, in level pixels of mean distance (favours
+    # the nearest of equally good minima)
+    coarse_shift_penalty: float = 0.01
+    # fine stage: edge search radius along the normal, at the start and at the end, pixels
+    edge_radius_start_px: float = 14.0
+    edge_radius_min_px: float = 3.0
+    # a gradient counts as an edge when its normal component exceeds this share of the ROI's
+    # robust gradient scale, and the gradient is within edge_max_angle_deg of the normal
+    edge_min_gradient_rel: float = 0.15
+    edge_max_angle_deg: float = 30.0
+    # corner search radius, at the start and at the end, pixels
+    point_radius_start_px: float = 10.0
+    point_radius_min_px: float = 2.5
+    # standard deviations of the observations, pixels
+    sigma_edge_px: float = 1.0
+    sigma_point_px: float = 1.5
+    # weight of one edge sample (samples along an edge are correlated), relative to 1/σ²
+    edge_sample_weight: float = 0.3
+    # Tukey biweight: c = max(tukey_min_px, 4.685 × robust scale of the residuals)
+    tukey_min_px: float = 2.0
+    # Gauss-Newton iterations of the fine stage
+    iterations: int = 12
+    # visibility is recomputed at these iterations (pose may have moved)
+    revisibility_at: tuple[int, ...] = (4,)
+    # acceptance: share of visible edge samples with an image edge within support_px
+    min_support: float = 0.5
+    support_px: float = 1.5
+    # acceptance: RMS of inlier residuals, pixels
+    max_rms_px: float = 1.5
+    # acceptance: predicted RMS reprojection uncertainty of the building's vertices, pixels
+    max_sigma_px: float = 1.0
+    # acceptance: at least this many inlier edge samples, and this many distinct edges
+    min_edge_inliers: int = 15
+    min_edges: int = 2
+    # acceptance: largest correction from the start pose (beyond it: a wrong minimum)
+    max_correction_m: float = 9.0
+    max_correction_deg: float = 8.0
+    # fewer visible edge samples than this: no refinement
+    min_samples: int = 10
+    # ROI margin around the projected wireframe, pixels (added to the coarse radius)
+    roi_margin_px: float = 24.0
+
+
+@dataclass(frozen=True, eq=False)
+class FrameFit:
+    """Result of fitting one frame to one building.
+
+    Attributes:
+        pose: refined pose (the start pose when nothing could be fitted).
+        accepted: the refinement passed every acceptance test.
+        reason: why it was rejected ("" when accepted).
+        rms_px: RMS of inlier residuals (edge distances and corner distances), pixels.
+        matches: inlier corner matches + edges with inlier samples.
+        support: share of visible edge samples with an image edge within `support_px`.
+        sigma_px: predicted RMS reprojection uncertainty of the building's vertices, pixels.
+        covariance: `(6, 6)` of `(ω, dC)` (rad, m).
+        corner_ids: `(M,)` wireframe vertex indices of matched corners (inliers).
+        corner_uv: `(M, 2)` image points they were matched to.
+    """
+
+    pose: Pose
+    accepted: bool
+    reason: str = ""
+    rms_px: float = float("nan")
+    matches: int = 0
+    support: float = 0.0
+    sigma_px: float = float("inf")
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
+    corner_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    corner_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+# -- small rotation helpers ---------------------------------------------------------------------
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation vector `(3,)` (radians) -> rotation matrix `(3, 3)` (Rodrigues)."""
+    w = np.asarray(w, dtype=np.float64)
+    t = float(np.linalg.norm(w))
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if t < 1e-12:
+        return np.eye(3) + K
+    K /= t
+    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix `(3, 3)` -> rotation vector `(3,)` (radians)."""
+    c = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
+    t = np.arccos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if t < 1e-9:
+        return 0.5 * v
+    return t / (2 * np.sin(t)) * v
+
+
+def pose_delta(reference: Pose, pose: Pose) -> np.ndarray:
+    """`(6,)` correction `(ω, dC)` taking `reference` to `pose` (ω in the reference camera frame)."""
+    return np.concatenate([so3_log(reference.R_world_from_cam.T @ pose.R_world_from_cam),
+                           pose.center - reference.center])
+
+
+def apply_delta(reference: Pose, delta: np.ndarray) -> Pose:
+    """Inverse of `pose_delta`: `reference` corrected by `delta` `(6,)`."""
+    d = np.asarray(delta, dtype=np.float64)
+    return Pose(reference.R_world_from_cam @ so3_exp(d[:3]), reference.center + d[3:])
+
+
+def project_jacobian(camera: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points `(N, 3)` -> (pixels `(N, 2)`, depth `(N,)`, `∂uv/∂δ` `(N, 2, 6)`)."""
+    R = pose.R_world_from_cam
+    xc = (np.asarray(X, dtype=np.float64) - pose.center) @ R
+    x, y, z = xc[:, 0], xc[:, 1], np.maximum(xc[:, 2], 1e-6)
+    ab = np.stack([x / z, y / z], axis=1)
+    uv = camera.pixel_from_normalized(ab)
+    n = len(xc)
+    eps = 1e-6
+    D = np.empty((n, 2, 2))
+    for k in range(2):
+        step = np.zeros(2)
+        step[k] = eps
+        D[:, :, k] = (camera.distort(ab + step) - camera.distort(ab - step)) / (2 * eps)
+    D[:, 0, :] *= camera.fx
+    D[:, 1, :] *= camera.fy
+    dab = np.zeros((n, 2, 3))
+    dab[:, 0, 0] = 1 / z
+    dab[:, 0, 2] = -x / z**2
+    dab[:, 1, 1] = 1 / z
+    dab[:, 1, 2] = -y / z**2
+    dxc = np.zeros((n, 3, 6))
+    dxc[:, 0, 1], dxc[:, 0, 2] = -z, y  # ∂x_c/∂ω = [x_c]× (x_c' = exp(-ω) x_c)
+    dxc[:, 1, 0], dxc[:, 1, 2] = z, -x
+    dxc[:, 2, 0], dxc[:, 2, 1] = -y, x
+    dxc[:, :, 3:] = -R.T
+    J = D @ dab @ dxc
+    return uv, xc[:, 2], J
+
+
+# -- coarse stage -------------------------------------------------------------------------------
+def coarse_search(
+    camera: Camera, pose: Pose, vis: VisibleWireframe, feats: ImageFeatures, options: FrameFitOptions
+) -> Pose:
+    """Minimise the mean truncated edge distance of the projected samples over depth offsets and
+    image shifts (level `coarse_level`); the shift is turned into an exact camera rotation."""
+    s = options.coarse_level
+    dt = feats.dt.get(s)
+    if dt is None or len(vis.points) == 0:
+        return pose
+    u0, v0 = feats.roi[0], feats.roi[1]
+    trunc = float(dt.max())
+    R_lev = int(np.ceil(options.coarse_radius_px / s))
+    padded = cv2.copyMakeBorder(dt, R_lev, R_lev, R_lev, R_lev, cv2.BORDER_CONSTANT, value=trunc)
+    _, depth = pose.project(camera, vis.points)
+    dmed = float(np.median(depth))
+    axis = pose.R_world_from_cam[:, 2]
+    best = (np.inf, pose.center, np.zeros(2), np.zeros(2))
+    wts = vis.weight
+    for step in options.coarse_depth_steps:
+        d = float(np.clip(step * dmed, -options.coarse_max_depth_m, options.coarse_max_depth_m))
+        cand = Pose(pose.R_world_from_cam, pose.center + d * axis)
+        uv, z = cand.project(camera, vis.points)
+        ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
+        if ok.sum() < options.min_samples:
+            continue
+        lev = (uv[ok] - [u0, v0] - (s - 1) / 2) / s
+        ij = np.rint(lev).astype(int)
+        lo = ij.min(axis=0)
+        hi = ij.max(axis=0)
+        size = hi - lo + 1
+        # the template must fit in the padded DT window around its position
+        if np.any(size > np.array(dt.shape[::-1]) + 2 * R_lev - 1):
+            continue
+        T = np.zeros((size[1], size[0]), np.float32)
+        np.add.at(T, (ij[:, 1] - lo[1], ij[:, 0] - lo[0]), wts[ok].astype(np.float32))
+        # window of the padded DT: template top-left at (lo + R_lev) ± R_lev
+        x0, y0 = lo[0], lo[1]  # = (lo + R_lev) - R_lev in padded coordinates
+        x1, y1 = lo[0] + size[0] + 2 * R_lev, lo[1] + size[1] + 2 * R_lev
+        # pad further if the window leaves the padded image
+        pw = cv2.copyMakeBorder(padded, max(-y0, 0), max(y1 - padded.shape[0], 0), max(-x0, 0),
+                                max(x1 - padded.shape[1], 0), cv2.BORDER_CONSTANT, value=trunc)
+        win = pw[y0 + max(-y0, 0): y1 + max(-y0, 0), x0 + max(-x0, 0): x1 + max(-x0, 0)]
+        res = cv2.matchTemplate(win, T, cv2.TM_CCORR) / max(float(T.sum()), 1e-9)
+        sy, sx = np.mgrid[-R_lev:R_lev + 1, -R_lev:R_lev + 1]
+        res = res + options.coarse_shift_penalty * np.hypot(sx, sy)
+        k = int(np.argmin(res))
+        iy, ix = divmod(k, res.shape[1])
+        if res[iy, ix] < best[0]:
+            shift = np.array([ix - R_lev, iy - R_lev], dtype=np.float64) * s
+            best = (float(res[iy, ix]), cand.center, shift, uv[ok].mean(axis=0))
+    if not np.isfinite(best[0]):
+        return pose
+    _, center, shift, ref = best
+    # rotation Q with Qᵀ b(ref) = b(ref + shift): R' = R Q
+    b0 = camera.bearing(ref[None])[0]
+    b1 = camera.bearing((ref + shift)[None])[0]
+    axis_q = np.cross(b1, b0)
+    sin_q = np.linalg.norm(axis_q)
+    ang = np.arctan2(sin_q, float(b0 @ b1))
+    w = axis_q / sin_q * ang if sin_q > 1e-12 else np.zeros(3)
+    return Pose(pose.R_world_from_cam @ so3_exp(w), center)
+
+
+# -- fine stage ---------------------------------------------------------------------------------
+def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of `img` `(h, w)` at float pixel coordinates (clamped to the border)."""
+    h, w = img.shape
+    u = np.clip(u, 0, w - 1.001)
+    v = np.clip(v, 0, h - 1.001)
+    iu = u.astype(int)
+    iv = v.astype(int)
+    fu = u - iu
+    fv = v - iv
+    a = img[iv, iu] * (1 - fu) + img[iv, iu + 1] * fu
+    b = img[iv + 1, iu] * (1 - fu) + img[iv + 1, iu + 1] * fu
+    return a * (1 - fv) + b * fv
+
+
+def edge_search(
+    feats: ImageFeatures, uv: np.ndarray, normal: np.ndarray, radius: float, options: FrameFitOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """1-D search along `normal` `(N, 2)` from `uv` `(N, 2)` within ±`radius` px.
+
+    Returns (signed offset `(N,)` px to the chosen edge (sub-pixel), found `(N,)` bool). The edge is
+    the strongest gradient component along the normal (gradient within `edge_max_angle_deg` of
+    it, above `edge_min_gradient_rel` × the ROI scale), mildly favouring small offsets.
+    """
+    n = len(uv)
+    if n == 0:
+        return np.zeros(0), np.zeros(0, bool)
+    R = int(np.ceil(radius))
+    k = np.arange(-R, R + 1, dtype=np.float64)
+    u0, v0 = feats.roi[0], feats.roi[1]
+    pu = uv[:, 0:1] - u0 + k[None, :] * normal[:, 0:1]
+    pv = uv[:, 1:2] - v0 + k[None, :] * normal[:, 1:2]
+    h, w = feats.gx.shape
+    inside = (pu >= 0) & (pu <= w - 1) & (pv >= 0) & (pv <= h - 1)
+    gx = _bilinear(feats.gx, pu, pv)
+    gy = _bilinear(feats.gy, pu, pv)
+    gn = np.abs(gx * normal[:, 0:1] + gy * normal[:, 1:2])
+    gm = np.hypot(gx, gy)
+    cos_lim = np.cos(np.radians(options.edge_max_angle_deg))
+    valid = inside & (gn >= options.edge_min_gradient_rel * feats.grad_ref) & (gn >= cos_lim * gm)
+    score = np.where(valid, gn * (1.0 - 0.3 * (k[None, :] / max(R, 1)) ** 2), -1.0)
+    # only local maxima of the gradient along the search line
+    left = np.concatenate([np.full((n, 1), -np.inf), gn[:, :-1]], axis=1)
+    right = np.concatenate([gn[:, 1:], np.full((n, 1), -np.inf)], axis=1)
+    score = np.where((gn >= left) & (gn >= right), score, -1.0)
+    j = np.argmax(score, axis=1)
+    found = score[np.arange(n), j] > 0
+    # parabolic sub-pixel refinement of the gradient peak
+    jl = np.clip(j - 1, 0, 2 * R)
+    jr = np.clip(j + 1, 0, 2 * R)
+    gl, gc, gr = gn[np.arange(n), jl], gn[np.arange(n), j], gn[np.arange(n), jr]
+    den = gl - 2 * gc + gr
+    interior = (np.abs(den) > 1e-12) & (jl != j) & (jr != j)
+    sub = np.where(interior, 0.5 * (gl - gr) / np.where(den == 0, 1, den), 0)
+    return k[j] + np.clip(sub, -0.5, 0.5), found
+
+
+def _image_normals(camera: Camera, pose: Pose, vis: VisibleWireframe, uv: np.ndarray) -> np.ndarray:
+    """Unit image normals `(N, 2)` of the projected edges at the samples."""
+    step = 0.05
+    uv2, _ = pose.project(camera, vis.points + step * vis.direction)
+    t = uv2 - uv
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    return np.stack([-t[:, 1], t[:, 0]], axis=1)
+
+
+def _tukey(r: np.ndarray, c: float) -> np.ndarray:
+    x = np.abs(r) / c
+    return np.where(x < 1, (1 - x * x) ** 2, 0.0)
+
+
+def _match_corners(
+    uv_c: np.ndarray, points: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest image point `(K, 2)` within `radius` of each projected corner `(M, 2)` -> (index, ok)."""
+    if len(uv_c) == 0 or len(points) == 0:
+        return np.zeros(len(uv_c), int), np.zeros(len(uv_c), bool)
+    d = np.linalg.norm(uv_c[:, None, :] - points[None, :, :], axis=2)
+    j = np.argmin(d, axis=1)
+    return j, d[np.arange(len(uv_c)), j] <= radius
+
+
+def fit_frame(
+    camera: Camera,
+    wireframe: Wireframe,
+    raycaster: RayCaster,
+    feats: ImageFeatures,
+    prior: Pose,
+    prior_info: np.ndarray,
+    start: Pose,
+    options: FrameFitOptions = FrameFitOptions(),
+    edge_options: EdgeOptions = EdgeOptions(),
+    coarse: bool = True,
+) -> FrameFit:
+    """Refine `start` against the frame's features; `prior` with information `prior_info` `(6, 6)`
+    (on `(ω, dC)`, rad⁻², m⁻²) is a weighted observation. See the module docstring."""
+    vis = visible_wireframe(wireframe, camera, start, raycaster, edge_options)
+    if len(vis.points) < options.min_samples:
+        return FrameFit(pose=start, accepted=False, reason="too few visible model edges")
+    pose = start
+    if coarse:
+        pose = coarse_search(camera, start, vis, feats, options)
+        vis2 = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+        if len(vis2.points) >= options.min_samples:
+            vis = vis2
+    points = feats.points
+    rms_prev = np.inf
+    sig_e2 = options.sigma_edge_px**2
+    sig_p2 = options.sigma_point_px**2
+    for it in range(options.iterations):
+        if it in options.revisibility_at:
+            vis2 = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+            if len(vis2.points) >= options.min_samples:
+                vis = vis2
+        R_e = max(options.edge_radius_min_px, min(options.edge_radius_start_px * 0.8**it, 3 * rms_prev + 1))
+        R_p = max(options.point_radius_min_px, min(options.point_radius_start_px * 0.8**it, 3 * rms_prev + 1))
+        H, g, w_e, off, _, rc, wc, _ = _normal_equations(
+            camera, pose, vis, feats, points, R_e, R_p, prior, prior_info, options
+        )
+        try:
+            delta = np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        # bound a single step (linearisation): 3 degrees, 2 metres
+        delta[:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(delta[:3]), 1e-12))
+        delta[3:] *= min(1.0, 2.0 / max(np.linalg.norm(delta[3:]), 1e-12))
+        pose = apply_delta(pose, delta)
+        inl = w_e > 0
+        res = np.concatenate([off[inl], np.linalg.norm(rc[wc > 0], axis=1)]) if len(rc) else off[inl]
+        rms_prev = float(np.sqrt(np.mean(res**2))) if len(res) else np.inf
+        small = np.linalg.norm(delta[:3]) < 2e-6 and np.linalg.norm(delta[3:]) < 2e-4
+        if small and R_e <= options.edge_radius_min_px + 1e-9:
+            break
+    return _evaluate(
+        camera, wireframe, raycaster, feats, prior, prior_info, start, pose, options, edge_options, sig_e2,
+        sig_p2,
+    )
+
+
+def _normal_equations(
+    camera: Camera,
+    pose: Pose,
+    vis: VisibleWireframe,
+    feats: ImageFeatures,
+    points: np.ndarray,
+    R_e: float,
+    R_p: float,
+    prior: Pose,
+    prior_info: np.ndarray,
+    options: FrameFitOptions,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One linearisation: (H `(6,6)`, g `(6,)`, edge weights, edge offsets, found, corner
+    residuals `(M,2)`, corner weights `(M,)`, matched point index `(M,)`)."""
+    uv, _, J = project_jacobian(camera, pose, vis.points)
+    nrm = _image_normals(camera, pose, vis, uv)
+    off, found = edge_search(feats, uv, nrm, R_e, options)
+    A = np.einsum("ni,nij->nj", nrm, J)
+    scale = 1.4826 * float(np.median(np.abs(off[found]))) if found.any() else R_e
+    c = max(options.tukey_min_px, 4.685 * scale)
+    unit = options.edge_sample_weight / options.sigma_edge_px**2
+    w_e = found * vis.weight * _tukey(off, min(c, R_e)) * unit
+    H = (A * w_e[:, None]).T @ A + prior_info
+    delta_tot = pose_delta(prior, pose)
+    g = A.T @ (w_e * off) - prior_info @ delta_tot
+    rc = np.zeros((0, 2))
+    wc = np.zeros(0)
+    idx = np.zeros(0, int)
+    if len(vis.corner_points) and len(points):
+        uv_c, _, Jc = project_jacobian(camera, pose, vis.corner_points)
+        idx, ok = _match_corners(uv_c, points, R_p)
+        rc = points[idx] - uv_c
+        dist = np.linalg.norm(rc, axis=1)
+        wc = ok * _tukey(dist, max(R_p, options.tukey_min_px)) / options.sigma_point_px**2
+        H += np.einsum("m,mki,mkj->ij", wc, Jc, Jc)
+        g += np.einsum("m,mki,mk->i", wc, Jc, rc)
+    return H, g, w_e, off, found, rc, wc, idx
+
+
+def _evaluate(
+    camera: Camera,
+    wireframe: Wireframe,
+    raycaster: RayCaster,
+    feats: ImageFeatures,
+    prior: Pose,
+    prior_info: np.ndarray,
+    start: Pose,
+    pose: Pose,
+    options: FrameFitOptions,
+    edge_options: EdgeOptions,
+    sig_e2: float,
+    sig_p2: float,
+) -> FrameFit:
+    """Residuals, support, covariance and the acceptance tests at the final pose."""
+    vis = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+    if len(vis.points) < options.min_samples:
+        return FrameFit(pose=start, accepted=False, reason="model left the frame")
+    R_min = options.edge_radius_min_px
+    H, _, w_e, off, found, rc, wc, idx = _normal_equations(
+        camera, pose, vis, feats, feats.points, R_min, options.point_radius_min_px, prior, prior_info, options
+    )
+    near = found & (np.abs(off) <= options.support_px)
+    support = float(np.sum(vis.weight * near) / max(np.sum(vis.weight), 1e-12))
+    inl_e = w_e > 0
+    inl_c = wc > 0
+    res = np.concatenate([off[inl_e], np.linalg.norm(rc[inl_c], axis=1)])
+    rms = float(np.sqrt(np.mean(res**2))) if len(res) else float("inf")
+    n_edges = int(np.sum(np.bincount(vis.edge[near], minlength=len(wireframe.edges))
+                         >= 0.5 * np.maximum(np.bincount(vis.edge, minlength=len(wireframe.edges)), 1)))
+    matches = int(inl_c.sum()) + n_edges
+    # a-posteriori variance factor (unit weight), never below 1
+    chi2 = float(np.sum(w_e * off**2) * sig_e2 / max(options.edge_sample_weight, 1e-9))
+    chi2 += float(np.sum(wc * np.sum(rc**2, axis=1)))
+    dof = max(int(inl_e.sum()) + 2 * int(inl_c.sum()) - 6, 1)
+    s0 = max(1.0, chi2 / dof)
+    try:
+        cov = np.linalg.inv(H) * s0
+    except np.linalg.LinAlgError:
+        return FrameFit(pose=start, accepted=False, reason="singular normal equations")
+    Xv = wireframe.vertices
+    uvv, zv, Jv = project_jacobian(camera, pose, Xv)
+    inside = (zv > 0.5) & camera.in_image(uvv)
+    if not inside.any():
+        inside = zv > 0.5
+    var = np.einsum("nki,ij,nkj->n", Jv[inside], cov, Jv[inside])
+    sigma_px = float(np.sqrt(np.mean(var))) if inside.any() else float("inf")
+    d = pose_delta(start, pose)
+    reason = ""
+    if support < options.min_support:
+        reason = f"edge support {support:.2f} < {options.min_support}"
+    elif rms > options.max_rms_px:
+        reason = f"rms {rms:.2f} px > {options.max_rms_px}"
+    elif sigma_px > options.max_sigma_px:
+        reason = f"pose not determined: sigma {sigma_px:.2f} px > {options.max_sigma_px}"
+    elif int(inl_e.sum()) < options.min_edge_inliers or n_edges < options.min_edges:
+        reason = f"too few inliers ({int(inl_e.sum())} samples, {n_edges} edges)"
+    elif np.linalg.norm(d[3:]) > options.max_correction_m or np.degrees(np.linalg.norm(d[:3])) > \
+            options.max_correction_deg:
+        reason = "correction beyond the plausible range"
+    return FrameFit(
+        pose=pose,
+        accepted=not reason,
+        reason=reason,
+        rms_px=rms,
+        matches=matches,
+        support=support,
+        sigma_px=sigma_px,
+        covariance=cov,
+        corner_ids=vis.corners[inl_c] if len(wc) else np.zeros(0, int),
+        corner_uv=feats.points[idx[inl_c]] if len(wc) else np.zeros((0, 2)),
+    )
