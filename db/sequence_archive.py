@@ -11,10 +11,12 @@ from the archive's headers (a zip bomb lies about them). No `extractall`.
 
 from __future__ import annotations
 
+import lzma
 import shutil
 import stat
 import tarfile
 import zipfile
+import zlib
 from pathlib import Path, PurePosixPath
 from typing import IO
 
@@ -130,7 +132,17 @@ def extract_archive(path: Path, dest: Path, *, max_bytes: int, max_members: int)
     except PackageError:
         _clear(dest)
         raise
-    except (zipfile.BadZipFile, tarfile.TarError, EOFError, OSError) as exc:
+    except (
+        zipfile.BadZipFile,
+        tarfile.TarError,
+        EOFError,
+        OSError,
+        RuntimeError,
+        NotImplementedError,
+        zlib.error,
+        lzma.LZMAError,
+        ValueError,
+    ) as exc:  # corrupt data, encrypted or unsupported compression
         _clear(dest)
         raise PackageError(path.name, f"corrupt or unreadable archive: {exc}") from exc
 

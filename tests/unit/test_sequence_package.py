@@ -437,3 +437,21 @@ def test_refuses_too_many_members(package_dir: Path, tmp_path: Path) -> None:
     with tarfile.open(tgz, "w") as tf:
         tf.add(package_dir, arcname=".")
     assert "members" in str(refused(tgz, max_members=3))
+
+
+def test_refuses_encrypted_or_corrupt_archives(package_dir: Path, tmp_path: Path) -> None:
+    arc = zip_dir(package_dir, tmp_path / "seq.zip")
+    data = bytearray(arc.read_bytes())
+    i = data.find(b"sequence.json") + len(b"sequence.json") + 20  # inside the manifest's data
+    data[i : i + 40] = bytes(40)
+    bad = tmp_path / "bad.zip"
+    bad.write_bytes(bytes(data))
+    assert refused(bad).field in ("bad.zip", "sequence.json")
+
+
+def test_directory_package_symlink_out_is_refused(package_dir: Path, tmp_path: Path) -> None:
+    outside = tmp_path / "outside.png"
+    (package_dir / "frames/000001.png").rename(outside)
+    (package_dir / "frames/000001.png").symlink_to(outside)
+    err = refused(package_dir)
+    assert err.field == "frames/000001.png" and "outside" in str(err)
