@@ -32,10 +32,10 @@ from sqlalchemy import Connection, Engine, text
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
 from db.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
-from db.errors import CityDBError, ModelExistsError
+from db.errors import ModelExistsError
 from db.geomcodec import encode_envelope, encode_footprints, encode_polygons
 from db.ops import copy_rows, create_spatial_indexes, delete_model, drop_spatial_indexes, reserve_ids
-from db.session import make_engine
+from db.session import as_engine
 from db.surface_checks import full_checks, jsonable, surface_checks
 from workers.pipeline.citymodel import Appearance, Building, ModelHeader, Polygon
 
@@ -137,18 +137,6 @@ def _vertical(srs_name: str | None) -> int | None:
         return vertical_epsg(srs_name) if srs_name else None
     except UnknownCRSError:
         return None
-
-
-def _engine(db: Engine | Any) -> Engine:
-    """Engine from an Engine, a sessionmaker (its bind) or a URL string."""
-    if isinstance(db, Engine):
-        return db
-    if isinstance(db, str):
-        return make_engine(db)
-    bind = getattr(db, "kw", {}).get("bind")
-    if isinstance(bind, Engine):
-        return bind
-    raise CityDBError(f"cannot get a database engine from {db!r}")
 
 
 class _Batch:
@@ -366,7 +354,7 @@ def import_citygml(
     opts = options or ImportOptions()
     path = Path(path)
     name = name or path.stem
-    engine = _engine(db)
+    engine = as_engine(db)
     t0 = time.perf_counter()
     header = citygml_reader.read_header(path, huge_tree=opts.huge_tree)
     srid = model_srid(header.srs_name)

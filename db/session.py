@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from services.settings import Settings
 
-__all__ = ["make_engine", "make_session_factory", "psycopg_url", "sqlalchemy_url"]
+__all__ = ["as_engine", "make_engine", "make_session_factory", "psycopg_url", "sqlalchemy_url"]
 
 
 def sqlalchemy_url(url: str) -> str:
@@ -44,7 +44,17 @@ def make_engine(settings_or_url: Settings | str, *, echo: bool = False) -> Engin
 def make_session_factory(engine_or_settings: Engine | Settings | str) -> sessionmaker[Session]:
     """`sessionmaker` bound to an engine (made from settings or a URL when one is given);
     `expire_on_commit=False` so objects stay readable after the unit of work commits."""
-    engine = (
-        engine_or_settings if isinstance(engine_or_settings, Engine) else make_engine(engine_or_settings)
-    )
+    engine = engine_or_settings if isinstance(engine_or_settings, Engine) else make_engine(engine_or_settings)
     return sessionmaker(bind=engine, expire_on_commit=False)
+
+
+def as_engine(db: Engine | sessionmaker[Session] | Settings | str) -> Engine:
+    """An Engine from an Engine, a sessionmaker bound to one, settings or a URL string."""
+    if isinstance(db, Engine):
+        return db
+    if isinstance(db, str | Settings):
+        return make_engine(db)
+    bind = db.kw.get("bind") if isinstance(db, sessionmaker) else None
+    if isinstance(bind, Engine):
+        return bind
+    raise TypeError(f"cannot get a database engine from {db!r}")

@@ -1,0 +1,395 @@
+"""Export a city model (or part of it) from the database as CityGML 2.0 plus texture files, in the
+results format (`spec/results-format.md`: `textured.gml`, `textures/*.png`).
+
+In: a database (Engine, sessionmaker or URL), a model (name or id), optionally a theme, a job and a
+2D bbox in the model CRS. Out: `OUT/textured.gml` written by `db.citygml.writer.write_citygml`
+from `Building` and `Appearance` dataclasses rebuilt from the rows (ids, ring ids, coordinates
+bit-exact, texture coordinates exact), and `OUT/<imageURI>` for every stored texture image.
+
+Streamed: the top-level building ids are listed first (one integer each), then buildings are
+fetched in batches of `ExportOptions.batch_size` and handed to the writer one by one, so memory
+does not grow with the model. Appearances imported with the file are written as the buildings' own;
+job appearances as `extra_appearances` of their building (as the in-process run does). With a
+theme only that theme's appearances are written, and only buildings that have one.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, replace
+from os import PathLike
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import numpy as np
+from sqlalchemy import Connection, Engine, text
+
+from db.appearance_rows import surface_data_from_rows
+from db.citygml.writer import write_citygml
+from db.errors import CityDBError, NotFoundError
+from db.geomcodec import polygon_rings_from_wkb
+from db.session import as_engine
+from workers.pipeline.citymodel import Appearance, Building, ParameterizedTexture, Polygon, Ring
+
+__all__ = ["ExportOptions", "ExportSummary", "export_citygml"]
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """Options of `export_citygml`.
+
+    Attributes:
+        batch_size: top-level buildings fetched per query round.
+        gml_name: file name of the CityGML document inside the output folder.
+        include_imported: also write the appearances imported with the file (when no theme is
+            given, or when they have the requested theme).
+    """
+
+    batch_size: int = 200
+    gml_name: str = "textured.gml"
+    include_imported: bool = True
+
+
+@dataclass(frozen=True)
+class ExportSummary:
+    """What an export wrote."""
+
+    path: Path
+    buildings: int
+    textures: int
+    seconds: float
+
+
+@dataclass(frozen=True)
+class _Filter:
+    model_id: int
+    theme: str | None
+    job_id: Any
+    bbox: tuple[float, float, float, float] | None
+    srid: int
+    include_imported: bool
+
+    def appearance_sql(self, alias: str = "a") -> str:
+        """SQL condition selecting the exported appearances."""
+        cond = []
+        if self.theme is not None:
+            cond.append(f"{alias}.theme = :theme")
+        if self.job_id is not None:
+            cond.append(f"({alias}.job_id = :job OR {alias}.job_id IS NULL)")
+        if not self.include_imported:
+            cond.append(f"{alias}.job_id IS NOT NULL")
+        return " AND ".join(cond) if cond else "TRUE"
+
+    def params(self) -> dict[str, Any]:
+        p: dict[str, Any] = {"m": self.model_id, "theme": self.theme, "job": self.job_id, "srid": self.srid}
+        if self.bbox is not None:
+            p.update(dict(zip(("x0", "y0", "x1", "y1"), self.bbox, strict=True)))
+        return p
+
+    def building_sql(self) -> str:
+        """SQL selecting the exported top-level buildings (alias `b`)."""
+        sql = "SELECT b.id FROM building b WHERE b.city_model_id = :m AND NOT b.is_part"
+        if self.bbox is not None:
+            sql += " AND b.envelope && ST_MakeEnvelope(:x0, :y0, :x1, :y1, :srid)"
+        if self.theme is not None or self.job_id is not None:
+            sql += (
+                " AND EXISTS (SELECT 1 FROM appearance a JOIN building pb ON pb.id = a.building_id"
+                f" WHERE pb.root_id = b.id AND {self.appearance_sql()})"
+            )
+        return sql
+
+
+def _model(conn: Connection, model: str | int) -> Mapping[str, Any]:
+    col = "id" if isinstance(model, int) or str(model).isdigit() else "name"
+    row = (
+        conn.execute(
+            text(f"SELECT id, name, srs_name, srid, gml_name FROM city_model WHERE {col} = :v"),
+            {"v": int(model) if col == "id" else model},
+        )
+        .mappings()
+        .first()
+    )
+    if row is None:
+        raise NotFoundError(f"city model {model!r} not found")
+    return row
+
+
+def _extent(conn: Connection, f: _Filter) -> tuple[np.ndarray, np.ndarray] | None:
+    row = conn.execute(
+        text(
+            "SELECT ST_XMin(e), ST_YMin(e), ST_ZMin(e), ST_XMax(e), ST_YMax(e), ST_ZMax(e) FROM "
+            f"(SELECT ST_3DExtent(x.envelope) AS e FROM building x WHERE x.id IN ({f.building_sql()})) q"
+        ),
+        f.params(),
+    ).one()
+    if row[0] is None:
+        return None
+    return np.array(row[:3], dtype=np.float64), np.array(row[3:], dtype=np.float64)
+
+
+def _safe_uri(uri: str) -> str:
+    """A relative POSIX path inside the output folder, or raise."""
+    p = PurePosixPath(uri)
+    if p.is_absolute() or ".." in p.parts or not p.parts or ":" in p.parts[0]:
+        raise CityDBError(f"texture imageURI {uri!r} is not a relative path inside the results folder")
+    return str(p)
+
+
+class _Images:
+    """Writes texture images once; a second image under the same URI gets a unique one."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        self.by_uri: dict[str, str] = {}  # uri -> sha256 written there
+        self.count = 0
+
+    def place(self, uri: str, sha: str, image_id: int) -> str:
+        """URI to write image `image_id` with checksum `sha` under (the stored one if free)."""
+        uri = _safe_uri(uri)
+        if self.by_uri.get(uri, sha) != sha:
+            p = PurePosixPath(uri)
+            uri = str(p.with_name(f"{p.stem}_{image_id}{p.suffix}"))
+        return uri
+
+    def write(self, uri: str, sha: str, data: bytes) -> None:
+        if uri in self.by_uri:
+            return
+        path = self.out / uri
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+        self.by_uri[uri] = sha
+        self.count += 1
+
+
+def _polygon(row: Mapping[str, Any]) -> Polygon:
+    if row["wkb"] is not None:
+        coords = polygon_rings_from_wkb(row["wkb"])
+    else:
+        coords = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in row["raw_rings"]]
+    rings = []
+    for c, rid, gen, closed in zip(
+        coords, row["ring_ids"], row["ring_generated"], row["ring_closed"], strict=True
+    ):
+        if not closed and row["wkb"] is not None:
+            c = c[:-1]
+        rings.append(Ring(id=rid, coords=c, generated_id=gen))
+    return Polygon(
+        id=row["gml_id"],
+        exterior=rings[0],
+        interiors=tuple(rings[1:]),
+        surface_class=row["surface_class"],
+        lod=row["lod"],
+        surface_id=row["surface_gml_id"],
+        in_solid=row["in_solid"],
+        generated_id=row["generated_id"],
+        collection_id=row["collection_id"],
+    )
+
+
+def _appearances(
+    conn: Connection, f: _Filter, building_rows: Sequence[int], images: _Images
+) -> tuple[dict[int, list[Appearance]], dict[int, list[Appearance]]]:
+    """(imported appearances by building row, job appearances by building row)."""
+    p = {**f.params(), "bids": list(building_rows)}
+    apps = (
+        conn.execute(
+            text(
+                "SELECT a.id, a.building_id, a.job_id, a.theme, a.gml_id FROM appearance a "
+                f"WHERE a.building_id = ANY(:bids) AND {f.appearance_sql()} "
+                "ORDER BY a.building_id, a.job_id NULLS FIRST, a.ordinal, a.id"
+            ),
+            p,
+        )
+        .mappings()
+        .all()
+    )
+    return _assemble(conn, apps, images)
+
+
+def _assemble(
+    conn: Connection, apps: Sequence[Mapping[str, Any]], images: _Images
+) -> tuple[dict[int, list[Appearance]], dict[int, list[Appearance]]]:
+    own: dict[int, list[Appearance]] = defaultdict(list)
+    extra: dict[int, list[Appearance]] = defaultdict(list)
+    if not apps:
+        return own, extra
+    aids = [a["id"] for a in apps]
+    sds = (
+        conn.execute(
+            text(
+                "SELECT sd.*, ti.sha256 AS tex_sha FROM surface_data sd LEFT JOIN tex_image ti "
+                "ON ti.id = sd.tex_image_id WHERE sd.appearance_id = ANY(:a) "
+                "ORDER BY sd.appearance_id, sd.ordinal"
+            ),
+            {"a": aids},
+        )
+        .mappings()
+        .all()
+    )
+    params: dict[int, list[Mapping[str, Any]]] = defaultdict(list)
+    for tp in (
+        conn.execute(
+            text(
+                "SELECT surface_data_id, target_gml_id, ring_ids, tex_coords FROM texture_param "
+                "WHERE surface_data_id = ANY(:s) ORDER BY surface_data_id, ordinal"
+            ),
+            {"s": [sd["id"] for sd in sds]},
+        )
+        .mappings()
+        .all()
+    ):
+        params[tp["surface_data_id"]].append(tp)
+    wanted: dict[int, tuple[str, str]] = {}
+    by_app: dict[int, list[Any]] = defaultdict(list)
+    for sd in sds:
+        data = surface_data_from_rows(sd, params.get(sd["id"], []))
+        if sd["tex_image_id"] is not None and isinstance(data, ParameterizedTexture):
+            uri = images.place(data.image_uri, sd["tex_sha"], sd["tex_image_id"])
+            wanted[sd["tex_image_id"]] = (uri, sd["tex_sha"])
+            if uri != data.image_uri:
+                data = replace(data, image_uri=uri)
+        by_app[sd["appearance_id"]].append(data)
+    if wanted:
+        for iid, blob in conn.execute(
+            text("SELECT id, image FROM tex_image WHERE id = ANY(:i)"), {"i": list(wanted)}
+        ).all():
+            uri, sha = wanted[iid]
+            images.write(uri, sha, bytes(blob))
+    for a in apps:
+        sd_list = by_app.get(a["id"], [])
+        if not sd_list:
+            continue
+        app = Appearance(theme=a["theme"], surface_data=tuple(sd_list), id=a["gml_id"])
+        (own if a["job_id"] is None else extra)[a["building_id"]].append(app)
+    return own, extra
+
+
+def _batch(
+    conn: Connection,
+    f: _Filter,
+    roots: Sequence[int],
+    images: _Images,
+    extra_out: dict[str, list[Appearance]],
+) -> list[Building]:
+    """Rebuild the top-level buildings `roots` (parts nested); job appearances go to `extra_out`."""
+    brows = (
+        conn.execute(
+            text(
+                "SELECT id, gml_id, parent_id, is_part, name, srs_name, generated_id, attributes "
+                "FROM building WHERE root_id = ANY(:r) ORDER BY ordinal"
+            ),
+            {"r": list(roots)},
+        )
+        .mappings()
+        .all()
+    )
+    bids = [b["id"] for b in brows]
+    polys: dict[int, list[Polygon]] = defaultdict(list)
+    for s in (
+        conn.execute(
+            text(
+                "SELECT building_id, gml_id, generated_id, ring_ids, ring_generated, ring_closed, "
+                "surface_class, surface_gml_id, lod, in_solid, collection_id, raw_rings, "
+                "ST_AsBinary(geometry) AS wkb "
+                "FROM surface WHERE building_id = ANY(:b) ORDER BY building_id, ordinal"
+            ),
+            {"b": bids},
+        )
+        .mappings()
+        .all()
+    ):
+        polys[s["building_id"]].append(_polygon(s))
+    own, extra = _appearances(conn, f, bids, images)
+    children: dict[int, list[int]] = defaultdict(list)
+    for b in brows:
+        if b["parent_id"] is not None:
+            children[b["parent_id"]].append(b["id"])
+    by_id = {b["id"]: b for b in brows}
+
+    def build(bid: int, parent_gml: str | None) -> Building:
+        r = by_id[bid]
+        if extra.get(bid):
+            extra_out[r["gml_id"]] = extra[bid]
+        return Building(
+            id=r["gml_id"],
+            polygons=tuple(polys.get(bid, ())),
+            parts=tuple(build(c, r["gml_id"]) for c in children.get(bid, ())),
+            attributes=dict(r["attributes"] or {}),
+            is_part=r["is_part"],
+            parent_id=parent_gml,
+            srs_name=r["srs_name"],
+            appearances=tuple(own.get(bid, ())),
+            name=r["name"],
+            generated_id=r["generated_id"],
+        )
+
+    return [build(rid, None) for rid in roots if rid in by_id]
+
+
+def export_citygml(
+    db: Engine | Any,
+    out_dir: str | PathLike[str],
+    *,
+    model: str | int,
+    theme: str | None = None,
+    job_id: Any = None,
+    bbox: tuple[float, float, float, float] | None = None,
+    options: ExportOptions | None = None,
+) -> ExportSummary:
+    """Write `out_dir/textured.gml` and `out_dir/textures/...` for a model (name or id).
+
+    `theme` keeps that theme's appearances only (and the buildings that have one); `job_id` keeps
+    one job's appearances (plus imported ones); `bbox` = (minx, miny, maxx, maxy) in the model CRS
+    keeps the top-level buildings whose 3D envelope meets it. Raises `NotFoundError`.
+    """
+    opts = options or ExportOptions()
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    engine = as_engine(db)
+    images = _Images(out)
+    with engine.connect() as conn:
+        m = _model(conn, model)
+        f = _Filter(
+            model_id=m["id"],
+            theme=theme,
+            job_id=job_id,
+            srid=m["srid"],
+            include_imported=opts.include_imported,
+            bbox=None if bbox is None else tuple(float(v) for v in bbox),  # type: ignore[arg-type]
+        )
+        roots = [r[0] for r in conn.execute(text(f.building_sql() + " ORDER BY b.ordinal"), f.params()).all()]
+        envelope = _extent(conn, f)
+        model_apps = (
+            conn.execute(
+                text(
+                    "SELECT a.id, a.building_id, a.job_id, a.theme, a.gml_id FROM appearance a "
+                    f"WHERE a.city_model_id = :m AND a.building_id IS NULL AND {f.appearance_sql()} "
+                    "ORDER BY a.ordinal, a.id"
+                ),
+                f.params(),
+            )
+            .mappings()
+            .all()
+        )
+        own_model, extra_model = _assemble(conn, model_apps, images)
+        extra: dict[str, list[Appearance]] = {}
+
+        def stream() -> Iterator[Building]:
+            for i in range(0, len(roots), opts.batch_size):
+                extra.clear()
+                yield from _batch(conn, f, roots[i : i + opts.batch_size], images, extra)
+
+        gml = out / opts.gml_name
+        n = write_citygml(
+            gml,
+            stream(),
+            srs_name=m["srs_name"],
+            extra_appearances=extra,
+            envelope=envelope,
+            model_appearances=[*own_model.get(None, []), *extra_model.get(None, [])],  # type: ignore[call-overload]
+            name=m["gml_name"],
+        )
+    return ExportSummary(path=gml, buildings=n, textures=images.count, seconds=time.perf_counter() - t0)
