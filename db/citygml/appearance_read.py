@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from lxml import etree
 
-from db.citygml.names import XLINK_HREF, CityGMLError, local
+from db.citygml.names import XLINK_HREF, CityGMLError, get_id, local, ref_id
 from workers.pipeline.citymodel import (
     Appearance,
     GeoreferencedTexture,
@@ -54,12 +54,6 @@ def _floats(text: str | None, el: etree._Element, n: int | None = None) -> tuple
     return vals
 
 
-def _uri_id(uri: str | None) -> str:
-    """`'#abc'` -> `'abc'` (a local reference); other URIs unchanged."""
-    uri = (uri or "").strip()
-    return uri[1:] if uri.startswith("#") else uri
-
-
 def _bool(text: str | None) -> bool | None:
     t = (text or "").strip().lower()
     if t in ("true", "1"):
@@ -85,8 +79,8 @@ def _parameterized(el: etree._Element, sid: str) -> ParameterizedTexture:
                     vals = _floats(tc.text, tc)
                     if len(vals) % 2:
                         raise CityGMLError("textureCoordinates: odd number of values", line=tc.sourceline)
-                    rings[_uri_id(tc.get("ring"))] = np.asarray(vals, dtype=np.float64).reshape(-1, 2)
-            targets.append(TextureTarget(polygon_id=_uri_id(ch.get("uri")), ring_coords=rings))
+                    rings[ref_id(tc.get("ring"))] = np.asarray(vals, dtype=np.float64).reshape(-1, 2)
+            targets.append(TextureTarget(polygon_id=ref_id(ch.get("uri")), ring_coords=rings))
         elif ln:
             fields[ln] = (ch.text or "").strip()
     return ParameterizedTexture(
@@ -106,7 +100,7 @@ def _x3d(el: etree._Element, sid: str) -> X3DMaterial:
     for ch in el:
         ln = local(ch.tag)
         if ln == "target":
-            targets.append(_uri_id(ch.text))
+            targets.append(ref_id(ch.text))
         elif ln in ("diffuseColor", "specularColor", "emissiveColor"):
             key = {"diffuseColor": "diffuse_color", "specularColor": "specular_color"}.get(
                 ln, "emissive_color"
@@ -128,7 +122,7 @@ def _georeferenced(el: etree._Element, sid: str) -> GeoreferencedTexture:
     for ch in el:
         ln = local(ch.tag)
         if ln == "target":
-            targets.append(_uri_id(ch.get("uri") or ch.text))
+            targets.append(ref_id(ch.get("uri") or ch.text))
         elif ln == "imageURI":
             image_uri = (ch.text or "").strip()
         elif ln == "mimeType":
@@ -162,7 +156,7 @@ def parse_appearance(
         registry: surface data by `gml:id`; inline surface data are added to it.
         prefix: prefix for ids generated for surface data without `gml:id` (e.g. the building id).
     """
-    draft = AppearanceDraft(theme="", id=el.get(id_attr), line=el.sourceline)
+    draft = AppearanceDraft(theme="", id=get_id(el, id_attr), line=el.sourceline)
     for ch in el:
         ln = local(ch.tag)
         if ln == "theme":
@@ -170,13 +164,13 @@ def parse_appearance(
         elif ln in ("surfaceDataMember", "surfaceData"):
             href = ch.get(XLINK_HREF)
             if href is not None:
-                draft.members.append(_uri_id(href))
+                draft.members.append(ref_id(href))
                 continue
             for sd in ch:
                 parser = _PARSERS.get(local(sd.tag))
                 if parser is None:
                     continue
-                sid = sd.get(id_attr) or f"{prefix}_sd{len(registry)}"
+                sid = get_id(sd, id_attr) or f"{prefix}_sd{len(registry)}"
                 obj = parser(sd, sid)
                 registry[sid] = obj
                 draft.members.append(obj)

@@ -36,7 +36,9 @@ from db.citygml.names import (
     STANDARD_ATTRIBUTES,
     XLINK_HREF,
     CityGMLError,
+    get_id,
     local,
+    ref_id,
     to_ncname,
 )
 from workers.pipeline.citymodel import Building, Polygon, Ring, SurfaceData
@@ -185,13 +187,13 @@ class _BuildingReader:
                 coords = _ring_coords(ring, dim)
                 if sign < 0:
                     coords = coords[::-1].copy()
-                rid = ring.get(self.id_attr)
+                rid = get_id(ring, self.id_attr)
                 if rid:
                     self.scope.ids.add(rid)
                 (rings if ln in ("exterior", "outerBoundaryIs") else interiors).append((rid, coords))
         if len(rings) != 1:
             raise CityGMLError(f"<{local(el.tag)}> needs exactly one exterior ring", line=el.sourceline)
-        pid = el.get(self.id_attr)
+        pid = get_id(el, self.id_attr)
         rec = _PolyRec(pid, rings + interiors, cls, lod, sid, in_solid, coll)
         d.polys.append(rec)
         if pid:
@@ -204,7 +206,7 @@ class _BuildingReader:
         """Walk a geometry subtree; `ctx` = (class, surface id, lod, in_solid, collection id, sign)."""
         href = el.get(XLINK_HREF)
         if href is not None:
-            self.scope.refs.append((href.strip().lstrip("#"), ctx[3], el.sourceline))
+            self.scope.refs.append((ref_id(href), ctx[3], el.sourceline))
             return
         ln = local(el.tag)
         if not ln or ln in _SKIP_GEOM:
@@ -224,7 +226,7 @@ class _BuildingReader:
         elif ln == "Solid":
             in_solid = True
         elif ln in ("MultiSurface", "CompositeSurface", "Shell", "Surface", "TriangulatedSurface"):
-            gid = el.get(self.id_attr)
+            gid = get_id(el, self.id_attr)
             if gid:
                 coll = gid
                 self.scope.ids.add(gid)
@@ -247,7 +249,7 @@ class _BuildingReader:
             if not ln:
                 continue
             cls = BOUNDARY_CLASSES.get(ln, "unclassified")
-            sid = surf.get(self.id_attr)
+            sid = get_id(surf, self.id_attr)
             if sid:
                 self.scope.ids.add(sid)
             for ch in surf:
@@ -342,7 +344,7 @@ class _BuildingReader:
             elif ln in ("consistsOfBuildingPart", "buildingPart"):
                 for part in ch:
                     if local(part.tag) == "BuildingPart":
-                        pid = part.get(self.id_attr)
+                        pid = get_id(part, self.id_attr)
                         n_parts += 1
                         gen = not pid
                         d.parts.append(self.draft(part, pid or f"{bid}_part{n_parts}", gen, bid))
@@ -427,7 +429,7 @@ def read_building(
         surface_registry: model-level surface data by id (for `xlink:href` from local appearances).
     """
     reader = _BuildingReader(id_attr, default_srs, surface_registry or {})
-    bid = el.get(id_attr)
+    bid = get_id(el, id_attr)
     draft = reader.draft(el, bid or fallback_id, not bid, None)
     reader.resolve()
     return reader.build(draft, None)

@@ -129,6 +129,26 @@ def to_ncname(value: str) -> str:
     return out
 
 
+def get_id(el: object, id_attr: str) -> str | None:
+    """The element's `gml:id` as the model keeps it: a valid NCName (`to_ncname`), None if absent.
+
+    Input ids that are not NCNames (e.g. starting with a digit, invalid in GML) are mapped the
+    same way everywhere (definitions, `xlink:href`, texture targets), so references still match
+    and every written file validates."""
+    value = el.get(id_attr)  # type: ignore[attr-defined]
+    if not value:
+        return None
+    return to_ncname(value.strip())
+
+
+def ref_id(uri: str | None) -> str:
+    """`'#abc'` (a local reference) -> `'abc'`, mapped like `get_id`; other URIs unchanged."""
+    uri = (uri or "").strip()
+    if uri.startswith("#"):
+        return to_ncname(uri[1:])
+    return uri
+
+
 def local(tag: object) -> str:
     """Local name of a Clark-notation tag (`'{ns}Name'` -> `'Name'`); '' for comments/PIs."""
     if not isinstance(tag, str):

@@ -1,0 +1,225 @@
+"""Geometry checks per polygon, reported and never fixed.
+
+In: `citymodel.Building`s (rings `(N, 3)` float64 in the model CRS, metres). Out: one
+`PolygonCheck` per polygon: plane (normal, offset) from `geometry.fit_plane`, non-planarity (max
+vertex distance to the best-fit plane, m), area (m²), distinct vertex count, and the flags
+too few vertices, zero area, non-planar, self-intersecting ring (in the polygon's plane, shapely),
+unclosed rings, and for walls whether the normal points away from the building.
+
+Outward test: a ray leaves the wall's centroid along its normal (slightly tilted, to avoid
+grazing edges) and its crossings with the building's triangulated surfaces are counted; an odd
+count means the normal points into the building. The surfaces used are the building's solid
+(`in_solid` polygons) where it has one, else all its polygons; each building part is tested
+against its own surfaces. The ray starts just outside the centre of the polygon's largest
+triangle; three slightly different directions vote. Result `None` when the building has too
+few surfaces to enclose a volume. A wall modelled twice between two sections of one building
+(a party wall, once per section) is reported inward on the side that faces the other section.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+
+from workers.pipeline.citymodel import Building, Polygon
+from workers.pipeline.geometry import fit_plane, open_ring, surface_axes, to_plane_2d, triangulate
+
+__all__ = ["CheckOptions", "PolygonCheck", "check_building", "check_buildings", "check_polygon"]
+
+
+@dataclass(frozen=True)
+class CheckOptions:
+    """Tolerances of the geometry checks.
+
+    Attributes:
+        planarity_tolerance_m: largest vertex distance from the best-fit plane before a polygon
+            is reported non-planar (m). CityGML QA practice uses 1 cm; 5 cm suits survey data.
+        min_area_m2: polygons with a smaller area are reported as zero-area (m²).
+        closure_tolerance_m: a ring whose last vertex is farther than this from its first is
+            reported unclosed (m); 0 demands exact repetition, as GML does.
+        outward_offset_m: distance from the wall centroid where the outward ray starts (m).
+    """
+
+    planarity_tolerance_m: float = 0.05
+    min_area_m2: float = 1e-4
+    closure_tolerance_m: float = 0.0
+    outward_offset_m: float = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class PolygonCheck:
+    """Check result of one polygon.
+
+    Attributes:
+        building_id: id of the building or part owning the polygon.
+        polygon_id: the polygon's id.
+        surface_class: its semantic class.
+        vertices: number of distinct exterior vertices (closing vertex not counted).
+        normal: `(3,)` unit normal of the best-fit plane (right-hand rule of the exterior ring),
+            None when degenerate.
+        offset: plane offset `normal · x` (m), NaN when degenerate.
+        planarity_m: max distance of any vertex to the plane (m), NaN when degenerate.
+        area_m2: area in the plane, holes subtracted (m²).
+        too_few_vertices: fewer than 3 distinct vertices in some ring.
+        zero_area: area below `min_area_m2` (or no plane).
+        non_planar: `planarity_m` above the tolerance.
+        self_intersecting: a ring crosses itself in the polygon's plane.
+        unclosed_rings: ids of rings whose last vertex does not repeat the first.
+        normal_outward: walls only: True when the normal points away from the building, False
+            when into it, None when not tested.
+    """
+
+    building_id: str
+    polygon_id: str
+    surface_class: str
+    vertices: int
+    normal: np.ndarray | None
+    offset: float
+    planarity_m: float
+    area_m2: float
+    too_few_vertices: bool
+    zero_area: bool
+    non_planar: bool
+    self_intersecting: bool
+    unclosed_rings: tuple[str, ...]
+    normal_outward: bool | None = None
+
+    @property
+    def problems(self) -> tuple[str, ...]:
+        """Names of the failed checks (empty when the polygon passed all)."""
+        out = []
+        for name in ("too_few_vertices", "zero_area", "non_planar", "self_intersecting"):
+            if getattr(self, name):
+                out.append(name)
+        if self.unclosed_rings:
+            out.append("unclosed_ring")
+        if self.normal_outward is False:
+            out.append("wall_normal_inward")
+        return tuple(out)
+
+    @property
+    def ok(self) -> bool:
+        """True when no check failed."""
+        return not self.problems
+
+
+def _distinct(coords: np.ndarray) -> int:
+    return len(np.unique(np.round(open_ring(coords), 9), axis=0)) if len(coords) else 0
+
+
+def check_polygon(
+    polygon: Polygon, building_id: str = "", options: CheckOptions | None = None
+) -> PolygonCheck:
+    """Check one polygon (the outward-normal test needs the building: see `check_building`)."""
+    opt = options or CheckOptions()
+    rings = polygon.rings
+    unclosed = tuple(
+        r.id
+        for r in rings
+        if len(r.coords) < 2 or float(np.linalg.norm(r.coords[0] - r.coords[-1])) > opt.closure_tolerance_m
+    )
+    too_few = any(_distinct(r.coords) < 3 for r in rings)
+    plane = None if too_few else fit_plane(polygon)
+    selfx = False
+    if plane is not None:
+        s, t = surface_axes(plane.normal, polygon.exterior.coords)
+        for r in rings:
+            uv = to_plane_2d(open_ring(r.coords), plane.centroid, s, t)
+            if len(uv) >= 3 and not shapely.is_simple(shapely.linearrings(uv)):
+                selfx = True
+                break
+    area = plane.area if plane is not None else 0.0
+    return PolygonCheck(
+        building_id=building_id,
+        polygon_id=polygon.id,
+        surface_class=polygon.surface_class,
+        vertices=_distinct(polygon.exterior.coords),
+        normal=None if plane is None else plane.normal,
+        offset=float("nan") if plane is None else plane.offset,
+        planarity_m=float("nan") if plane is None else plane.max_deviation,
+        area_m2=area,
+        too_few_vertices=too_few,
+        zero_area=plane is None or area < opt.min_area_m2,
+        non_planar=plane is not None and plane.max_deviation > opt.planarity_tolerance_m,
+        self_intersecting=selfx,
+        unclosed_rings=unclosed,
+    )
+
+
+def _ray_crossings(origin: np.ndarray, direction: np.ndarray, tri: np.ndarray) -> int:
+    """Crossings of a ray with triangles `(T, 3, 3)` (Möller-Trumbore, t > 0)."""
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    p = np.cross(direction, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tv = origin - tri[:, 0]
+    u = np.einsum("ij,ij->i", tv, p) * inv
+    q = np.cross(tv, e1)
+    v = (q @ direction) * inv
+    t = np.einsum("ij,ij->i", e2, q) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
+    return int(np.count_nonzero(hit))
+
+
+#: Small fixed tilts of the outward ray (three votes; avoids rays grazing edges or faces).
+_TILTS = np.array([[0.013, 0.021, 0.017], [-0.019, 0.011, -0.023], [0.007, -0.029, 0.031]])
+
+
+def _triangles(polys: Iterable[Polygon], origin: np.ndarray) -> np.ndarray:
+    out = []
+    for p in polys:
+        verts, idx = triangulate(p)
+        if len(idx):
+            out.append((verts - origin)[idx])
+    return np.concatenate(out, axis=0) if out else np.zeros((0, 3, 3))
+
+
+def _outward(b: Building, checks: list[PolygonCheck], opt: CheckOptions) -> list[PolygonCheck]:
+    solid = [p for p in b.polygons if p.in_solid]
+    hull = solid if len(solid) >= 4 else list(b.polygons)
+    if len(hull) < 4:
+        return checks
+    origin = np.mean([p.exterior.coords[0] for p in hull], axis=0)
+    tri = _triangles(hull, origin)
+    if not len(tri):
+        return checks
+    out = []
+    for p, c in zip(b.polygons, checks, strict=True):
+        if p.surface_class != "WallSurface" or c.normal is None:
+            out.append(c)
+            continue
+        own = _triangles([p], origin)
+        if not len(own):
+            out.append(c)
+            continue
+        areas = np.linalg.norm(np.cross(own[:, 1] - own[:, 0], own[:, 2] - own[:, 0]), axis=1)
+        start = own[int(np.argmax(areas))].mean(axis=0) + opt.outward_offset_m * c.normal
+        votes = 0
+        for tilt in _TILTS:
+            d = c.normal + tilt
+            votes += _ray_crossings(start, d / np.linalg.norm(d), tri) % 2
+        out.append(PolygonCheck(**{**c.__dict__, "normal_outward": votes < 2}))
+    return out
+
+
+def check_building(building: Building, options: CheckOptions | None = None) -> list[PolygonCheck]:
+    """Checks of every polygon of a building and its parts (own polygons first, then parts)."""
+    opt = options or CheckOptions()
+    out: list[PolygonCheck] = []
+    for b in building.iter_buildings():
+        checks = [check_polygon(p, b.id, opt) for p in b.polygons]
+        out.extend(_outward(b, checks, opt))
+    return out
+
+
+def check_buildings(
+    buildings: Iterable[Building], options: CheckOptions | None = None
+) -> Iterator[PolygonCheck]:
+    """`check_building` over many buildings, streamed."""
+    for b in buildings:
+        yield from check_building(b, options)
