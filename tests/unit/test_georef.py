@@ -415,3 +415,13 @@ def test_mountings_documented_in_docs(M, look, right) -> None:
     x, _, z = axes(camera_pose([0, 0, 0], [0, 0, 0], mounting(M=M)))
     np.testing.assert_allclose(z, look, atol=1e-12)
     np.testing.assert_allclose(x, right, atol=1e-12)
+
+
+def test_world_is_east_north_even_for_northing_first_crs() -> None:
+    # EPSG:31467 (Gauss-Krüger zone 3) lists northing first; world x must still be the easting
+    m = manifest([[48.0, 9.0, 100.0]], [[0, 0, 0]], crs="EPSG:4979")
+    W = model_positions(m, "EPSG:31467")
+    assert abs(W[0, 0] - 3_500_000) < 200 and abs(W[0, 1] - 5_318_000) < 2_000
+    P = manifest([[3_500_000.0, 5_318_000.0, 10.0]], [[0, 0, 0]], crs="EPSG:31467")
+    W = model_positions(P, "EPSG:25832")
+    assert abs(W[0, 0] - 500_000) < 200 and abs(W[0, 1] - 5_316_300) < 2_000

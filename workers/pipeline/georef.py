@@ -230,8 +230,9 @@ def transform_positions(
 ) -> np.ndarray:
     """Positions `(N, 3)` in `source_crs` -> world `(N, 3)` in the model CRS, plus the vertical offset.
 
-    `source_crs`: `"model"` (already in model coordinates: passthrough), `"EPSG:4979"` (`[lat,
-    lon, ellipsoidal height]`: horizontal transformation, height kept), or any resolvable
+    `source_crs`: `"model"` (already in model coordinates: passthrough), `"EPSG:4979"` or
+    another geographic CRS (`[lat, lon, ellipsoidal height]`: horizontal transformation, height
+    kept), or any resolvable
     projected CRS (passthrough when its horizontal CRS equals the model's, otherwise transformed
     horizontally; heights are kept in both cases). `model_crs=None` means "the manifest's CRS
     is the world" (only valid for projected or `"model"` sources).
@@ -250,9 +251,9 @@ def transform_positions(
         else:
             dst_h = horizontal_crs(model_crs)
             if src_h.is_geographic:
-                # EPSG:4979 / 4326 axis order is lat, lon: let pyproj honour the authority order.
-                tr = pyproj.Transformer.from_crs(src_h, dst_h, always_xy=False)
-                P[:, 0], P[:, 1] = tr.transform(P[:, 0], P[:, 1])
+                # positions are [lat, lon, h] (EPSG:4979); world is always (east, north)
+                tr = pyproj.Transformer.from_crs(src_h, dst_h, always_xy=True)
+                P[:, 0], P[:, 1] = tr.transform(P[:, 1].copy(), P[:, 0].copy())
             elif not same_horizontal(src_h, dst_h):
                 tr = pyproj.Transformer.from_crs(src_h, dst_h, always_xy=True)
                 P[:, 0], P[:, 1] = tr.transform(P[:, 0], P[:, 1])
