@@ -1,9 +1,118 @@
-"""Command group placeholder: filled in by its issue."""
+"""Database commands: `citytherm db upgrade|downgrade|current`, `citytherm import CITY.gml`,
+`citytherm export --model M -o OUT/`.
+
+The database is `CITYTHERM_DATABASE_URL` (settings) unless `--database-url` is given.
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
+from rich.console import Console
+
+from services.settings import get_settings
+
+console = Console()
+db_app = typer.Typer(help="City model database schema (Alembic migrations).", no_args_is_help=True)
+
+
+def _url(database_url: str | None) -> str:
+    return database_url or get_settings().database_url
+
+
+DbUrl = typer.Option(None, "--database-url", help="SQLAlchemy/libpq URL (default: CITYTHERM_DATABASE_URL).")
+
+
+@db_app.command("upgrade")
+def upgrade_cmd(revision: str = typer.Argument("head"), database_url: str | None = DbUrl) -> None:
+    """Upgrade the schema to REVISION (default: the newest)."""
+    from db.migrations import current_revision, upgrade
+
+    url = _url(database_url)
+    upgrade(url, revision)
+    console.print(f"database at revision [bold]{current_revision(url)}[/bold]")
+
+
+@db_app.command("downgrade")
+def downgrade_cmd(revision: str = typer.Argument(..., help="target revision, e.g. 'base' or '-1'"),
+                  database_url: str | None = DbUrl) -> None:  # fmt: skip
+    """Downgrade the schema to REVISION ('base' drops every citytherm table and view)."""
+    from db.migrations import current_revision, downgrade
+
+    url = _url(database_url)
+    downgrade(url, revision)
+    console.print(f"database at revision [bold]{current_revision(url)}[/bold]")
+
+
+@db_app.command("current")
+def current_cmd(database_url: str | None = DbUrl) -> None:
+    """Print the schema revision of the database and the newest one available."""
+    from db.migrations import current_revision, head_revision
+
+    console.print(f"current: {current_revision(_url(database_url))}  head: {head_revision()}")
+
+
+def import_cmd(
+    city_gml: Path = typer.Argument(..., exists=True, dir_okay=False, help="CityGML file (1.0, 2.0 or 3.0)"),
+    name: str | None = typer.Option(None, "--name", help="model name (default: the file's stem)"),
+    replace: bool = typer.Option(False, "--replace", help="replace an existing model of that name"),
+    checks: str = typer.Option("fast", "--checks", help="geometry checks: fast, full or none"),
+    database_url: str | None = DbUrl,
+) -> None:
+    """Import a CityGML file into the city model database (streamed, in batches)."""
+    from db.errors import CityDBError
+    from db.importer import ImportOptions, import_citygml
+
+    try:
+        s = import_citygml(
+            _url(database_url), city_gml, name=name, replace=replace, options=ImportOptions(checks=checks)
+        )
+    except (CityDBError, ValueError) as exc:
+        console.print(f"[red]import failed:[/red] {exc}")
+        raise typer.Exit(1) from exc
+    rate = (s.buildings + s.parts) / s.seconds if s.seconds > 0 else float("nan")
+    console.print(
+        f"model [bold]{s.name}[/bold] (id {s.model_id}, SRID {s.srid}{', replaced' if s.replaced else ''}): "
+        f"{s.buildings} buildings, {s.parts} parts, {s.surfaces} surfaces, {s.appearances} appearances "
+        f"in {s.seconds:.1f} s ({rate:.0f} buildings/s)"
+    )
+
+
+def _bbox(value: str | None) -> tuple[float, float, float, float] | None:
+    if value is None:
+        return None
+    try:
+        parts = tuple(float(v) for v in value.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 4 or parts[0] > parts[2] or parts[1] > parts[3]:
+        raise typer.BadParameter("--bbox must be minx,miny,maxx,maxy (model CRS)")
+    return parts  # type: ignore[return-value]
+
+
+def export_cmd(
+    model: str = typer.Option(..., "--model", help="model name or id"),
+    out: Path = typer.Option(..., "-o", "--out", help="output folder (textured.gml, textures/)"),
+    theme: str | None = typer.Option(None, "--theme", help="only this appearance theme"),
+    job: str | None = typer.Option(None, "--job", help="only this job's appearances"),
+    bbox: str | None = typer.Option(None, "--bbox", help="minx,miny,maxx,maxy in the model CRS"),
+    database_url: str | None = DbUrl,
+) -> None:
+    """Export a city model as CityGML 2.0 plus texture files (the results format)."""
+    from db.errors import CityDBError
+    from db.export import export_citygml
+
+    try:
+        s = export_citygml(_url(database_url), out, model=model, theme=theme, job_id=job, bbox=_bbox(bbox))
+    except CityDBError as exc:
+        console.print(f"[red]export failed:[/red] {exc}")
+        raise typer.Exit(1) from exc
+    console.print(f"wrote {s.path} ({s.buildings} buildings, {s.textures} textures) in {s.seconds:.1f} s")
 
 
 def register(root: typer.Typer) -> None:
-    """Add this module's commands to the root app."""
+    """Add `db`, `import` and `export` to the root app."""
+    root.add_typer(db_app, name="db")
+    root.command("import")(import_cmd)
+    root.command("export")(export_cmd)
