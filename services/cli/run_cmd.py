@@ -1,9 +1,125 @@
-"""Command group placeholder: filled in by its issue."""
+"""`citytherm run CITY.gml PACKAGE -o OUT/`: a whole texturing job in one process (or a local
+process pool), with a progress bar per stage and a closing summary table."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from services.runner import STAGES, RunError, RunOptions, RunSummary, refine_available, run_job
+
+_LABELS = {
+    "ingest": "read model and package",
+    "plan": "plan building units",
+    "units": "orient and texture buildings",
+    "write": "write results",
+}
+
+
+def summary_table(summary: RunSummary, limit: int = 30) -> Table:
+    """Rich table: one row per processed building (the `limit` with most texels) and a total row."""
+    table = Table(title=f"citytherm run: {summary.out_dir}", show_footer=False)
+    for col, justify in (
+        ("building", "left"),
+        ("frames", "right"),
+        ("surfaces", "right"),
+        ("texels", "right"),
+        ("observed", "right"),
+        ("m/px", "right"),
+        ("tiles", "right"),
+        ("refined", "right"),
+    ):
+        table.add_column(col, justify=justify, no_wrap=col != "building")  # type: ignore[arg-type]
+    rows = sorted(summary.results, key=lambda r: -sum(s.texels_observed for s in r.surfaces))
+    for r in rows[:limit]:
+        obs = sum(s.texels_observed for s in r.surfaces)
+        tot = sum(s.texels_total for s in r.surfaces)
+        res = [s.mean_resolution_m for s in r.surfaces if s.texels_observed]
+        table.add_row(
+            r.building_id,
+            str(summary.units_frames.get(r.building_id, 0)),
+            f"{sum(1 for s in r.surfaces if s.texels_observed)}/{len(r.surfaces)}",
+            f"{obs:,}",
+            f"{obs / tot:.0%}" if tot else "-",
+            f"{sum(res) / len(res):.3f}" if res else "-",
+            str(sum(1 for _ in (r.appearance.surface_data if r.appearance else ()))),
+            f"{sum(1 for p in r.poses if p.status == 'refined')}/{len(r.poses)}" if r.poses else "-",
+        )
+    if len(rows) > limit:
+        table.add_row(f"... {len(rows) - limit} more", "", "", "", "", "", "", "")
+    tot = summary.texels_total
+    table.add_row(
+        f"[bold]total: {len(rows)}[/]",
+        str(summary.n_frames),
+        "",
+        f"[bold]{summary.texels_observed:,}[/]",
+        f"{summary.texels_observed / tot:.0%}" if tot else "-",
+        "",
+        "",
+        "on" if summary.refine else "off",
+    )
+    return table
+
+
+def run(
+    city: Path = typer.Argument(..., help="CityGML file (1.0, 2.0 or 3.0)."),
+    package: Path = typer.Argument(..., help="Sequence package: folder, sequence.json, .zip or .tar(.gz)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Results folder (created)."),
+    resolution: float = typer.Option(10.0, "--resolution", help="Texels per metre on every surface."),
+    theme: str = typer.Option("thermal-ir", "--theme", help="Appearance theme of the textures."),
+    buildings: str | None = typer.Option(None, "--buildings", help="Comma-separated building ids."),
+    workers: int = typer.Option(1, "--workers", min=1, help="Processes for the building units."),
+    no_refine: bool = typer.Option(False, "--no-refine", help="Keep the GNSS/INS prior poses."),
+    no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
+) -> None:
+    """Texture every building the sequence sees and write the results folder."""
+    console = Console()
+    ids = tuple(b.strip() for b in buildings.split(",") if b.strip()) if buildings else None
+    refine = (not no_refine) and refine_available()
+    options = RunOptions(
+        resolution_px_per_m=resolution,
+        theme=theme,
+        buildings=ids,
+        workers=workers,
+        refine=refine,
+        display=not no_display,
+    )
+    columns = (
+        TextColumn("{task.description:<30}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=console, transient=False) as bars:
+        tasks = {s: bars.add_task(_LABELS[s], total=None, start=False) for s in STAGES}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            task = tasks[stage]
+            if done == 0:
+                bars.start_task(task)
+            bars.update(task, completed=done, total=max(total, 1))
+
+        try:
+            summary = run_job(city, package, out, options, progress)
+        except (RunError, ValueError, OSError) as exc:
+            bars.stop()
+            console.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(code=2) from exc
+    console.print(summary_table(summary))
+    t = summary.timings_s
+    console.print(
+        "stage times: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in t.items())
+        + f"; results in {summary.out_dir}"
+    )
+    if not refine:
+        console.print("poses: GNSS/INS priors (refinement " + ("off)" if no_refine else "not installed)"))
 
 
 def register(root: typer.Typer) -> None:
-    """Add this module's commands to the root app."""
+    """Add `citytherm run` to the root app."""
+    root.command("run")(run)

@@ -1,0 +1,192 @@
+"""Writing a job's results folder (`spec/results-format.md`): texture tiles, `textured.gml`,
+`orientation.json`, `report.json`.
+
+In: `BuildingResult`s of the building units, the buildings, the prior poses and the manifest.
+Out: files under the results folder. File I/O only; no numerical work beyond colour mapping.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from db.citygml.writer import write_citygml
+from workers.pipeline.citymodel import Appearance, Building, ParameterizedTexture
+from workers.pipeline.pose import Pose
+from workers.pipeline.results import BuildingResult, TextureTile
+from workers.pipeline.sequence import Radiometry, SequenceManifest
+
+ORIENTATION_FORMAT = "citytherm-orientation/1"
+REPORT_FORMAT = "citytherm-report/1"
+
+
+class ResultsWriteError(OSError):
+    """A results file could not be written (names the file)."""
+
+
+def _clean(x: Any) -> Any:
+    """JSON-safe copy: NaN/inf -> None, numpy scalars and arrays -> Python values."""
+    if isinstance(x, Mapping):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Write `data` as strict JSON (no NaN) to `path`."""
+    try:
+        path.write_text(json.dumps(_clean(data), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise ResultsWriteError(f"{path}: {exc}") from exc
+
+
+def write_tile(out_dir: Path, tile: TextureTile) -> Path:
+    """Write one 16-bit single-channel PNG tile under `out_dir` (its `name` is relative)."""
+    path = out_dir / tile.name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(tile.dn, dtype=np.uint16)):
+        raise ResultsWriteError(f"{path}: PNG encoder failed")
+    return path
+
+
+def display_name(name: str) -> str:
+    """`textures/X_0.png` -> `textures/X_0-display.png`."""
+    p = Path(name)
+    return str(p.with_name(f"{p.stem}-display{p.suffix}"))
+
+
+def write_display_tile(
+    out_dir: Path, tile: TextureTile, radiometry: Radiometry, value_range: tuple[float, float]
+) -> Path:
+    """Write an 8-bit colour-mapped (inferno) RGB copy of a tile; unobserved texels black."""
+    lo, hi = value_range
+    vals = radiometry.physical(tile.dn)
+    scaled = np.clip((vals - lo) / max(hi - lo, 1e-6) * 254.0 + 1.0, 1, 255).astype(np.uint8)
+    bgr = cv2.applyColorMap(scaled, cv2.COLORMAP_INFERNO)
+    bgr[tile.dn == 0] = 0
+    path = out_dir / display_name(tile.name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), bgr):
+        raise ResultsWriteError(f"{path}: PNG encoder failed")
+    return path
+
+
+def display_appearance(app: Appearance) -> Appearance:
+    """The `<theme>-display` twin of an appearance: same targets, `-display` images."""
+    data = tuple(
+        ParameterizedTexture(
+            id=f"{sd.id}_display",
+            image_uri=display_name(sd.image_uri),
+            targets=sd.targets,
+            mime_type=sd.mime_type,
+        )
+        for sd in app.surface_data
+        if isinstance(sd, ParameterizedTexture)
+    )
+    return Appearance(
+        theme=f"{app.theme}-display", surface_data=data, id=f"{app.id}_display" if app.id else None
+    )
+
+
+def write_textured_gml(
+    path: Path,
+    buildings: Sequence[Building],
+    results: Mapping[str, BuildingResult],
+    srs_name: str | None,
+    display: bool,
+) -> int:
+    """Write `textured.gml`: the textured buildings, complete, with the job's appearances."""
+    extra: dict[str, list[Appearance]] = {}
+    for b in buildings:
+        r = results.get(b.id)
+        if r is None or r.appearance is None:
+            continue
+        extra[b.id] = [r.appearance, display_appearance(r.appearance)] if display else [r.appearance]
+    textured = [b for b in buildings if b.id in extra]
+    try:
+        return write_citygml(path, textured, srs_name=srs_name, extra_appearances=extra)
+    except OSError as exc:
+        raise ResultsWriteError(f"{path}: {exc}") from exc
+
+
+def orientation_document(
+    manifest: SequenceManifest, priors: Sequence[Pose], results: Sequence[BuildingResult]
+) -> dict[str, Any]:
+    """The `orientation.json` document: prior pose of every frame, refined poses per building."""
+    refined: dict[int, list[dict[str, Any]]] = {}
+    for r in results:
+        for fp in r.poses:
+            refined.setdefault(fp.frame, []).append(
+                {
+                    "building": fp.building_id,
+                    **fp.pose.to_dict(),
+                    "rms_px": fp.rms_px,
+                    "matches": fp.matches,
+                    "status": fp.status,
+                }
+            )
+    m = manifest.mounting
+    return {
+        "format": ORIENTATION_FORMAT,
+        "mounting": {
+            "boresight_deg": np.asarray(m.boresight_deg, dtype=float).tolist(),
+            "lever_arm_m": np.asarray(m.lever_arm_m, dtype=float).tolist(),
+            "time_delay_s": 0.0,
+        },
+        "frames": [
+            {"index": f.index, "file": f.file, "prior": pose.to_dict(), "refined": refined.get(f.index, [])}
+            for f, pose in zip(manifest.frames, priors, strict=True)
+        ],
+    }
+
+
+def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
+    """Per-building section of `report.json`."""
+    total = sum(s.texels_total for s in r.surfaces)
+    observed = sum(s.texels_observed for s in r.surfaces)
+    refined = [p for p in r.poses if p.status == "refined"]
+    return {
+        "id": r.building_id,
+        "frames": n_frames,
+        "frames_used": sorted({f for s in r.surfaces for f in s.frames_used}),
+        "texels_total": total,
+        "texels_observed": observed,
+        "observed_share": observed / total if total else 0.0,
+        "surfaces_observed": sum(1 for s in r.surfaces if s.texels_observed),
+        "tiles": [t.name for t in r.tiles],
+        "orientation": {
+            "frames": len(r.poses),
+            "refined": len(refined),
+            "mean_rms_px": float(np.mean([p.rms_px for p in refined])) if refined else None,
+            "mean_matches": float(np.mean([p.matches for p in refined])) if refined else None,
+        },
+        "timings_s": dict(r.timings_s),
+        "surfaces": [
+            {
+                "id": s.polygon_id,
+                "building": s.building_id,
+                "class": s.surface_class,
+                "texels_total": s.texels_total,
+                "texels_observed": s.texels_observed,
+                "observed_share": s.observed_share,
+                "frames_used": list(s.frames_used),
+                "mean_resolution_m": s.mean_resolution_m,
+                "mean_view_angle_deg": s.mean_view_angle_deg,
+                "temperature": dict(s.temperature),
+            }
+            for s in r.surfaces
+        ],
+    }

@@ -1,0 +1,280 @@
+"""In-process job orchestration: `citytherm run` without any server.
+
+In: a CityGML file, a sequence package, an output folder and `RunOptions`.
+Out: the results folder of `spec/results-format.md` and a `RunSummary`.
+
+Stages: ingest (read the model and the package, georeference the prior poses), plan (which
+frames see which building: `units.plan_units`), units (one `run_building_unit` per building, in a
+process pool with `workers > 1`), write (tiles, `textured.gml`, `orientation.json`,
+`report.json`). The service runs the same units as Celery tasks.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import multiprocessing
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from db.citygml.reader import read_model
+from db.sequence_package import open_package
+from services.results_files import (
+    REPORT_FORMAT,
+    building_report,
+    orientation_document,
+    write_display_tile,
+    write_json,
+    write_textured_gml,
+    write_tile,
+)
+from workers.pipeline.citymodel import Building
+from workers.pipeline.georef import prior_poses
+from workers.pipeline.results import BuildingResult
+from workers.pipeline.texel import TexelOptions
+from workers.pipeline.units import BuildingUnit, PlanOptions, UnitOptions, plan_units, run_building_unit
+
+#: progress callback: (stage, done, total); called with done == 0 when a stage starts.
+Progress = Callable[[str, int, int], None]
+STAGES = ("ingest", "plan", "units", "write")
+
+
+class RunError(ValueError):
+    """A job that cannot run as asked (names the file or option)."""
+
+
+def refine_available() -> bool:
+    """True when the orientation module (`workers.pipeline.coregister`) is installed."""
+    return importlib.util.find_spec("workers.pipeline.coregister") is not None
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Options of one `citytherm run` job.
+
+    Attributes:
+        resolution_px_per_m: texels per metre on every surface.
+        theme: appearance theme of the textures (`<theme>-display` for the 8-bit copies).
+        buildings: ids of the top-level buildings to texture (None: all the sequence sees).
+        workers: processes for the building units (1: in this process).
+        refine: refine poses per building before texturing (needs the orientation module).
+        display: also write the 8-bit colour-mapped `<theme>-display` appearance.
+        unit: per-stage options of the units (its texel resolution, theme and refine flag are
+            overridden by the fields above).
+        plan: planning options.
+    """
+
+    resolution_px_per_m: float = 10.0
+    theme: str = "thermal-ir"
+    buildings: tuple[str, ...] | None = None
+    workers: int = 1
+    refine: bool = False
+    display: bool = True
+    unit: UnitOptions = field(default_factory=UnitOptions)
+    plan: PlanOptions = field(default_factory=PlanOptions)
+
+    def unit_options(self) -> UnitOptions:
+        """The units' options with this job's resolution, theme and refine flag."""
+        texel = replace(self.unit.texel, resolution_px_per_m=self.resolution_px_per_m)
+        return replace(self.unit, texel=texel, theme=self.theme, refine=self.refine)
+
+
+@dataclass
+class RunSummary:
+    """What a job did: where the results are, per-building results (tiles dropped after writing),
+    per-stage wall times."""
+
+    out_dir: Path
+    n_frames: int
+    n_buildings_model: int
+    results: list[BuildingResult]
+    units_frames: dict[str, int]
+    timings_s: dict[str, float]
+    refine: bool
+
+    @property
+    def texels_observed(self) -> int:
+        """Observed texels over all buildings."""
+        return sum(s.texels_observed for r in self.results for s in r.surfaces)
+
+    @property
+    def texels_total(self) -> int:
+        """Texels inside the polygons of all processed buildings."""
+        return sum(s.texels_total for r in self.results for s in r.surfaces)
+
+
+def _mp_context() -> multiprocessing.context.BaseContext:
+    """`forkserver` where available (no fork of a process that may hold Open3D threads)."""
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+def run_units(units: Sequence[BuildingUnit], workers: int) -> Iterator[BuildingResult]:
+    """Run building units, in this process (`workers <= 1`) or in a pool; yields results as they
+    finish (pool order is completion order)."""
+    if workers <= 1 or len(units) <= 1:
+        for u in units:
+            yield run_building_unit(u)
+        return
+    with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=_mp_context()) as pool:
+        # largest units first: better load balance
+        order = sorted(range(len(units)), key=lambda k: -len(units[k].frames))
+        futures = [pool.submit(run_building_unit, units[k]) for k in order]
+        for fut in as_completed(futures):
+            yield fut.result()
+
+
+def _value_range(results: Sequence[BuildingResult]) -> tuple[float, float]:
+    """Display range: 1st and 99th percentile of observed surface medians and extremes."""
+    lo = [s.temperature["p05"] for r in results for s in r.surfaces if s.temperature]
+    hi = [s.temperature["p95"] for r in results for s in r.surfaces if s.temperature]
+    if not lo:
+        return 0.0, 1.0
+    return float(np.percentile(lo, 5)), float(np.percentile(hi, 95))
+
+
+def run_job(
+    city_gml: str | Path,
+    package: str | Path,
+    out_dir: str | Path,
+    options: RunOptions = RunOptions(),
+    progress: Progress | None = None,
+) -> RunSummary:
+    """Texture the buildings of `city_gml` seen by the sequence `package`; write the results
+    folder `out_dir` (created; existing result files are overwritten)."""
+    report: Progress = progress or (lambda stage, done, total: None)
+    timings: dict[str, float] = {}
+    if options.workers < 1:
+        raise RunError(f"workers must be >= 1, got {options.workers}")
+    if options.refine and not refine_available():
+        raise RunError("refine: the orientation module (workers.pipeline.coregister) is not installed")
+    TexelOptions(resolution_px_per_m=options.resolution_px_per_m)  # validates the resolution
+    out = Path(out_dir)
+
+    # -- ingest ------------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    report("ingest", 0, 3)
+    if not Path(city_gml).is_file():
+        raise RunError(f"{city_gml}: city model not found")
+    header, buildings = read_model(city_gml)
+    report("ingest", 1, 3)
+    pkg = open_package(package)
+    manifest = pkg.manifest
+    report("ingest", 2, 3)
+    priors = prior_poses(manifest, header.srs_name)
+    report("ingest", 3, 3)
+    timings["ingest"] = time.perf_counter() - t0
+
+    # -- plan --------------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    report("plan", 0, 1)
+    ids = {b.id for b in buildings}
+    if options.buildings is not None:
+        missing = [b for b in options.buildings if b not in ids]
+        if missing:
+            raise RunError(f"buildings: not in {city_gml}: {', '.join(missing)}")
+    units = plan_units(
+        buildings,
+        manifest.camera,
+        priors,
+        pkg.frames,
+        manifest.radiometry,
+        times=[f.time for f in manifest.frames],
+        frame_indices=[f.index for f in manifest.frames],
+        accuracy=manifest.accuracy,
+        options=options.unit_options(),
+        plan=options.plan,
+        targets=options.buildings,
+    )
+    report("plan", 1, 1)
+    timings["plan"] = time.perf_counter() - t0
+
+    # -- units -------------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    results: list[BuildingResult] = []
+    report("units", 0, len(units))
+    tiles_written = 0.0
+    for k, r in enumerate(run_units(units, options.workers)):
+        t1 = time.perf_counter()
+        for tile in r.tiles:
+            write_tile(out, tile)
+        tiles_written += time.perf_counter() - t1
+        results.append(r)
+        report("units", k + 1, len(units))
+    timings["units"] = time.perf_counter() - t0 - tiles_written
+
+    # -- write -------------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    report("write", 0, 4)
+    if options.display:
+        rng = _value_range(results)
+        for r in results:
+            for tile in r.tiles:
+                write_display_tile(out, tile, r.radiometry, rng)
+    report("write", 1, 4)
+    by_id = {r.building_id: r for r in results}
+    write_textured_gml(out / "textured.gml", buildings, by_id, header.srs_name, options.display)
+    report("write", 2, 4)
+    write_json(out / "orientation.json", orientation_document(manifest, priors, results))
+    report("write", 3, 4)
+    timings["write"] = time.perf_counter() - t0 + tiles_written
+    frames_of = {u.building.id: len(u.frames) for u in units}
+    stage_units: dict[str, float] = {}
+    for r in results:
+        for key, val in r.timings_s.items():
+            stage_units[key] = stage_units.get(key, 0.0) + float(val)
+    write_json(
+        out / "report.json",
+        {
+            "format": REPORT_FORMAT,
+            "city_model": str(city_gml),
+            "package": str(package),
+            "theme": options.theme,
+            "resolution_px_per_m": options.resolution_px_per_m,
+            "refine": options.refine,
+            "workers": options.workers,
+            "frames": len(manifest.frames),
+            "buildings_in_model": len(buildings),
+            "buildings_processed": len(results),
+            "buildings_textured": sum(1 for r in results if r.appearance is not None),
+            "timings_s": dict(timings),
+            "unit_stage_timings_s": stage_units,
+            "buildings": [building_report(by_id[u.building.id], frames_of[u.building.id]) for u in units],
+        },
+    )
+    report("write", 4, 4)
+    pkg.close()
+    slim = [replace_tiles(r) for r in results]
+    return RunSummary(
+        out_dir=out,
+        n_frames=len(manifest.frames),
+        n_buildings_model=len(buildings),
+        results=slim,
+        units_frames=frames_of,
+        timings_s=timings,
+        refine=options.refine,
+    )
+
+
+def replace_tiles(r: BuildingResult) -> BuildingResult:
+    """The same result without its tile pixels (already written), to keep summaries small."""
+    return BuildingResult(
+        building_id=r.building_id,
+        appearance=r.appearance,
+        tiles=(),
+        radiometry=r.radiometry,
+        surfaces=r.surfaces,
+        poses=r.poses,
+        anomalies=r.anomalies,
+        timings_s=r.timings_s,
+    )
+
+
+def model_buildings(city_gml: str | Path) -> list[Building]:
+    """All top-level buildings of a CityGML file (convenience for callers and tests)."""
+    return read_model(city_gml)[1]

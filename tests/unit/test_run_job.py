@@ -1,0 +1,157 @@
+"""`citytherm run` end to end on an analytic scene: the results folder as the spec says."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from db.citygml.reader import read_model
+from db.citygml.validate import validate_citygml2
+from services.cli import app
+from services.runner import RunError, RunOptions, run_job
+from tests.unit.texture_package import write_scene
+from tests.unit.texture_scene import box_building, field, look_at
+from workers.pipeline.camera import Camera
+from workers.pipeline.citymodel import ParameterizedTexture
+from workers.pipeline.sequence import Radiometry
+from workers.pipeline.units import ArrayFrameSource, plan_units, run_building_unit
+
+CAM = Camera(240, 192, 220.0, 220.0, 119.5, 95.5, k1=-0.05)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scene")
+    buildings = [box_building("B1", 0, 0, 12, 8, 7, holes=True), box_building("B2", 16, 0, 24, 6, 5)]
+    buildings.append(box_building("FAR", 500, 500, 505, 505, 5))  # never seen
+    poses = [look_at([-3 + 3.0 * k, -15, 1.6], [0 + 3.0 * k, 0, 3.5]) for k in range(9)]
+    gml, pkg = write_scene(folder, buildings, CAM, poses)
+    return folder, gml, pkg, buildings, poses
+
+
+@pytest.fixture(scope="module")
+def job(scene):
+    folder, gml, pkg, _, _ = scene
+    out = folder / "out"
+    return out, run_job(gml, pkg, out, RunOptions(resolution_px_per_m=10))
+
+
+def test_results_folder_has_the_spec_files_and_valid_citygml_with_the_same_ids(scene, job):
+    _, _gml, _, buildings, _ = scene
+    out, summary = job
+    for name in ("textured.gml", "orientation.json", "report.json", "textures/B1_0.png", "textures/B2_0.png"):
+        assert (out / name).is_file(), name
+    assert (out / "textures/B1_0-display.png").is_file()
+    assert validate_citygml2(out / "textured.gml") == []
+    _header, back = read_model(out / "textured.gml")
+    assert [b.id for b in back] == ["B1", "B2"]  # the textured buildings, FAR was never seen
+    src = {b.id: b for b in buildings}
+    for b in back:
+        assert [p.id for p in b.iter_polygons()] == [p.id for p in src[b.id].iter_polygons()]
+        assert [r.id for p in b.iter_polygons() for r in p.rings] == [
+            r.id for p in src[b.id].iter_polygons() for r in p.rings
+        ]
+        themes = sorted(a.theme for a in b.appearances)
+        assert themes == ["thermal-ir", "thermal-ir-display"]
+    assert {r.building_id for r in summary.results} == {"B1", "B2"}
+
+
+def test_tiles_and_texture_coordinates_read_back_to_the_ground_truth(job):
+    out, _ = job
+    _, back = read_model(out / "textured.gml")
+    rad = Radiometry("K", 0.01, 0.0)
+    checked = 0
+    for b in back:
+        app = next(a for a in b.appearances if a.theme == "thermal-ir")
+        polys = {p.id: p for p in b.iter_polygons()}
+        for tex in app.surface_data:
+            assert isinstance(tex, ParameterizedTexture) and tex.mime_type == "image/png"
+            dn = cv2.imread(str(out / tex.image_uri), cv2.IMREAD_UNCHANGED)
+            assert dn.dtype == np.uint16 and dn.ndim == 2
+            H, W = dn.shape
+            for target in tex.targets:
+                poly = polys[target.polygon_id]
+                ext = poly.exterior
+                st = target.ring_coords[ext.id]
+                assert st.shape == (len(ext.coords), 2)
+                # affine map plane -> tile raster from three ring vertices, then sample the tile
+                X = np.c_[st[:, 0] * W, (1 - st[:, 1]) * H]
+                A, *_ = np.linalg.lstsq(np.c_[ext.coords, np.ones(len(ext.coords))], X, rcond=None)
+                rng = np.random.default_rng(0)
+                w = rng.dirichlet(np.ones(len(ext.coords) - 1), size=200)
+                pts = w @ ext.coords[:-1]
+                xy = np.c_[pts, np.ones(len(pts))] @ A
+                vals = dn[np.floor(xy[:, 1]).astype(int), np.floor(xy[:, 0]).astype(int)]
+                seen = vals > 0
+                if seen.sum() < 20:
+                    continue
+                # texel centres are within half a texel diagonal: compare with the field's variation
+                err = rad.physical(vals[seen]) - field(pts[seen])
+                assert np.median(np.abs(err)) < 0.3, poly.id
+                checked += 1
+    assert checked >= 3
+
+
+def test_orientation_and_report_documents(scene, job):
+    _, _, _, _, poses = scene
+    out, _ = job
+    doc = json.loads((out / "orientation.json").read_text())
+    assert doc["format"] == "citytherm-orientation/1"
+    assert len(doc["frames"]) == len(poses)
+    for f, p in zip(doc["frames"], poses, strict=True):
+        assert np.allclose(f["prior"]["center"], p.center, atol=1e-6)
+        assert np.allclose(f["prior"]["rotation"], p.R_world_from_cam, atol=1e-9)
+        assert f["refined"] == []
+    assert doc["mounting"]["time_delay_s"] == 0.0
+    rep = json.loads((out / "report.json").read_text())
+    assert set(rep["timings_s"]) == {"ingest", "plan", "units", "write"}
+    b1 = next(b for b in rep["buildings"] if b["id"] == "B1")
+    w0 = next(s for s in b1["surfaces"] if s["id"] == "B1_w0")
+    assert w0["texels_observed"] / w0["texels_total"] > 0.98
+    assert 0.01 < w0["mean_resolution_m"] < 0.2 and 0 <= w0["mean_view_angle_deg"] < 80
+    assert abs(w0["temperature"]["mean"] - 286) < 5
+    north = next(s for s in b1["surfaces"] if s["id"] == "B1_w2")
+    assert north["texels_observed"] == 0 and north["mean_resolution_m"] is None
+
+
+def test_units_are_picklable_and_runs_are_reproducible(scene):
+    _, _, _, buildings, poses = scene
+    frames = {i: np.full((CAM.height, CAM.width), 280.0, np.float32) for i in range(len(poses))}
+    units = plan_units(buildings, CAM, poses, ArrayFrameSource(frames), Radiometry())
+    assert [u.building.id for u in units] == ["B1", "B2"]
+    assert [o.id for o in units[0].occluders] == ["B2"]
+    u2 = pickle.loads(pickle.dumps(units[0]))
+    a, b = run_building_unit(units[0]), run_building_unit(u2)
+    assert [t.name for t in a.tiles] == [t.name for t in b.tiles]
+    assert all(np.array_equal(x.dn, y.dn) for x, y in zip(a.tiles, b.tiles, strict=True))
+    observed = [s for s in a.surfaces if s.texels_observed]
+    assert observed and all(s.temperature["median"] == pytest.approx(280.0) for s in observed)
+    assert {s.polygon_id for s in a.surfaces} == {p.id for p in buildings[0].iter_polygons()}
+
+
+def test_bad_input_names_what_is_wrong(scene, tmp_path):
+    _, gml, pkg, _, _ = scene
+    with pytest.raises(RunError, match="NOPE"):
+        run_job(gml, pkg, tmp_path / "o", RunOptions(buildings=("NOPE",)))
+    with pytest.raises(RunError, match="city model not found"):
+        run_job(tmp_path / "missing.gml", pkg, tmp_path / "o")
+
+
+@pytest.mark.slow
+def test_cli_with_two_workers_gives_the_same_textures(scene, job, tmp_path):
+    _, gml, pkg, _, _ = scene
+    out1, _ = job
+    res = CliRunner().invoke(
+        app, ["run", str(gml), str(pkg), "-o", str(tmp_path / "o2"), "--workers", "2", "--no-refine"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "total: 2" in res.output
+    for name in ("textures/B1_0.png", "textures/B2_0.png"):
+        a = cv2.imread(str(out1 / name), cv2.IMREAD_UNCHANGED)
+        b = cv2.imread(str(tmp_path / "o2" / name), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(a, b)
