@@ -287,6 +287,8 @@ def parse_manifest(d: Any, root: Path | None = None) -> SequenceManifest:
         except UnknownCRSError as exc:
             raise PackageError("crs", str(exc)) from exc
     att = d.get("attitude") or {}
+    if not isinstance(att, Mapping):
+        raise PackageError("attitude", f"expected a JSON object, got {att!r}")
     heading_reference = _choice(
         att.get("heading_reference", "grid"), HEADING_REFERENCES, "attitude.heading_reference"
     )

@@ -335,7 +335,15 @@ def test_accepts_crs_spellings(package_dir: Path) -> None:
 
 @pytest.mark.parametrize(
     "field, value",
-    [("platform", "boat"), ("radiometry", {"unit": "F", "scale": 1, "offset": 0})],
+    [
+        ("platform", "boat"),
+        ("radiometry", {"unit": "F", "scale": 1, "offset": 0}),
+        ("attitude", "grid"),
+        ("attitude", {"heading_reference": "magnetic"}),
+        ("camera", {"model": "FISHEYE"}),
+        ("accuracy", {"position_m": -1, "attitude_deg": 0.5}),
+        ("frames", []),
+    ],
 )
 def test_refuses_bad_choices(package_dir: Path, field: str, value: object) -> None:
     err = refused(edit(package_dir, lambda d: d.update({field: value})))
