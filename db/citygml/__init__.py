@@ -11,13 +11,14 @@ Public API:
 """
 
 from db.citygml.names import CityGMLError
-from db.citygml.reader import iter_buildings, read_header, read_model
+from db.citygml.reader import iter_buildings, open_model, read_header, read_model
 from db.citygml.validate import validate_citygml2
 from db.citygml.writer import write_citygml
 
 __all__ = [
     "CityGMLError",
     "iter_buildings",
+    "open_model",
     "read_header",
     "read_model",
     "validate_citygml2",

@@ -124,10 +124,19 @@ def check_polygon(
     too_few = any(_distinct(r.coords) < 3 for r in rings)
     plane = None if too_few else fit_plane(polygon)
     selfx = False
+    frame = None
     if plane is not None:
-        s, t = surface_axes(plane.normal, polygon.exterior.coords)
+        frame = (plane.normal, plane.centroid)
+    elif not too_few:  # zero net area (e.g. a bow-tie): a plane through the points still exists
+        pts = open_ring(polygon.exterior.coords)
+        centre = pts.mean(axis=0)
+        _, sv, vt = np.linalg.svd(pts - centre, full_matrices=False)
+        if len(sv) >= 2 and sv[1] > 1e-9:
+            frame = (vt[-1], centre)
+    if frame is not None:
+        s, t = surface_axes(frame[0], polygon.exterior.coords)
         for r in rings:
-            uv = to_plane_2d(open_ring(r.coords), plane.centroid, s, t)
+            uv = to_plane_2d(open_ring(r.coords), frame[1], s, t)
             if len(uv) >= 3 and not shapely.is_simple(shapely.linearrings(uv)):
                 selfx = True
                 break

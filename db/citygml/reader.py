@@ -43,7 +43,7 @@ from db.citygml.names import (
 )
 from workers.pipeline.citymodel import Appearance, Building, ModelHeader, SurfaceData
 
-__all__ = ["CityGMLError", "iter_buildings", "read_header", "read_model"]
+__all__ = ["CityGMLError", "iter_buildings", "open_model", "read_header", "read_model"]
 
 log = logging.getLogger(__name__)
 
@@ -252,6 +252,33 @@ def iter_buildings(path: str | PathLike[str], *, huge_tree: bool = False) -> Ite
     for kind, obj in _Stream(path, huge_tree).events():
         if kind == "building":
             yield obj  # type: ignore[misc]
+
+
+def open_model(
+    path: str | PathLike[str], *, huge_tree: bool = False
+) -> tuple[ModelHeader, Iterator[Building], list[Appearance]]:
+    """Streaming access to a whole model: `(header, buildings, late_appearances)`.
+
+    The header is read at once; `buildings` streams the top-level buildings; CityModel-level
+    appearances that stand after the first building are appended to `late_appearances` while
+    `buildings` is consumed (complete once it is exhausted). One pass over the file."""
+    events = _Stream(path, huge_tree).events()
+    late: list[Appearance] = []
+    header: ModelHeader | None = None
+    for kind, obj in events:
+        if kind == "header":
+            header = obj  # type: ignore[assignment]
+            break
+    assert header is not None
+
+    def buildings() -> Iterator[Building]:
+        for kind, obj in events:
+            if kind == "building":
+                yield obj  # type: ignore[misc]
+            elif kind == "appearance":
+                late.append(obj)  # type: ignore[arg-type]
+
+    return header, buildings(), late
 
 
 def read_model(path: str | PathLike[str], *, huge_tree: bool = False) -> tuple[ModelHeader, list[Building]]:

@@ -288,7 +288,7 @@ def write_citygml(
     srs_name: str | None,
     extra_appearances: Mapping[str, Sequence[Appearance]] | None = None,
     envelope: tuple[np.ndarray, np.ndarray] | None = None,
-    model_appearances: Sequence[Appearance] = (),
+    model_appearances: Iterable[Appearance] = (),
     name: str | None = None,
 ) -> int:
     """Write buildings as a CityGML 2.0 file, streamed; returns the number of buildings written.
@@ -302,7 +302,9 @@ def write_citygml(
             of the building or building part they are written into (normally the top-level one).
         envelope: `(lower (3,), upper (3,))` for the CityModel's `gml:boundedBy`, optional.
         model_appearances: CityModel-level appearances (`app:appearanceMember`), e.g.
-            `ModelHeader.appearances` of the input.
+            `ModelHeader.appearances` of the input; iterated after the buildings (written at the
+            end of the model), so a list still being filled while `buildings` is consumed works
+            (`reader.open_model`).
         name: `gml:name` of the CityModel.
     """
     extra = extra_appearances or {}
@@ -326,13 +328,13 @@ def write_citygml(
                 _sub(env, _G + "lowerCorner", fmt(lo.tolist()))
                 _sub(env, _G + "upperCorner", fmt(hi.tolist()))
                 xf.write(bb, pretty_print=True)
-            for app in model_appearances:
-                member = etree.Element(f"{{{APP}}}appearanceMember", nsmap=NSMAP)
-                sdw.appearance_element(member, app)
-                xf.write(member, pretty_print=True)
             for b in buildings:
                 member = etree.Element(f"{{{CORE}}}cityObjectMember", nsmap=NSMAP)
                 member.append(_BuildingWriter(srs_name, extra, sdw).building(b, srs_name))
                 xf.write(member, pretty_print=True)
                 n += 1
+            for app in model_appearances:
+                member = etree.Element(f"{{{APP}}}appearanceMember", nsmap=NSMAP)
+                sdw.appearance_element(member, app)
+                xf.write(member, pretty_print=True)
     return n
