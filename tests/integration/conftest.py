@@ -50,3 +50,22 @@ def redis_url() -> str:
     client = redis.Redis.from_url(REDIS_URL)
     client.flushdb()
     return REDIS_URL
+
+
+@pytest.fixture(scope="session")
+def migrated_db(pg_test_db: str) -> str:
+    """`pg_test_db` upgraded to the newest schema revision (Alembic); yields the same URL."""
+    from db.migrations import upgrade
+
+    upgrade(pg_test_db)
+    return pg_test_db
+
+
+@pytest.fixture(scope="session")
+def db_engine(migrated_db: str) -> Iterator[object]:
+    """A SQLAlchemy engine (psycopg 3) on the migrated test database."""
+    from db.session import make_engine
+
+    engine = make_engine(migrated_db)
+    yield engine
+    engine.dispose()

@@ -1,0 +1,234 @@
+"""Import of every real CityGML sample into PostGIS: counts equal the reader's, geometries valid
+with the model SRID, 3D coordinates round-trip, appearances and checks stored, re-import refused
+unless replaced, a failed import leaves nothing; bbox export selects by envelope."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import text
+
+import db.importer as importer_mod
+from db.citygml.reader import read_model
+from db.citygml.validate import validate_citygml2
+from db.crs import horizontal_epsg
+from db.errors import ModelExistsError
+from db.export import export_citygml
+from db.geomcodec import polygon_rings_from_wkb
+from db.importer import ImportOptions, import_citygml
+from tests.conftest import DATA
+
+pytestmark = pytest.mark.integration
+
+SAMPLES = sorted(DATA.glob("*.gml"))
+
+
+def _scalar(engine, sql: str, **p):
+    with engine.connect() as c:
+        return c.execute(text(sql), p).scalar_one()
+
+
+@pytest.mark.parametrize("path", SAMPLES, ids=[p.stem for p in SAMPLES])
+def test_import_sample(db_engine, path: Path) -> None:
+    header, buildings = read_model(path)
+    name = f"imp-{path.stem}"
+    s = import_citygml(db_engine, path, name=name, options=ImportOptions(batch_size=40))
+    flat = [b for t in buildings for b in t.iter_buildings()]
+    polys = [p for b in flat for p in b.polygons]
+    assert s.buildings == len(buildings)
+    assert s.parts == sum(b.is_part for b in flat)
+    assert s.surfaces == len(polys)
+    assert s.srid == horizontal_epsg(header.srs_name) > 0
+    with db_engine.connect() as c:
+        m = s.model_id
+        n_b, n_p = c.execute(
+            text(
+                "SELECT count(*) FILTER (WHERE NOT is_part), count(*) FILTER (WHERE is_part) FROM building "
+                "WHERE city_model_id = :m"
+            ),
+            {"m": m},
+        ).one()
+        assert (n_b, n_p) == (s.buildings, s.parts)
+        # parts point to an existing parent of the same model; roots are top-level buildings
+        orphans = c.execute(
+            text(
+                "SELECT count(*) FROM building b LEFT JOIN building p ON p.id = b.parent_id "
+                "WHERE b.city_model_id = :m AND b.is_part AND (p.id IS NULL OR p.city_model_id <> :m)"
+            ),
+            {"m": m},
+        ).scalar_one()
+        assert orphans == 0
+        srids = (
+            c.execute(
+                text(
+                    "SELECT DISTINCT ST_SRID(geometry) FROM surface WHERE city_model_id = :m UNION "
+                    "SELECT DISTINCT ST_SRID(footprint) FROM building "
+                    "WHERE city_model_id = :m AND footprint IS NOT NULL "
+                    "UNION SELECT DISTINCT ST_SRID(envelope) FROM building WHERE city_model_id = :m"
+                ),
+                {"m": m},
+            )
+            .scalars()
+            .all()
+        )
+        assert set(srids) == {s.srid}
+        invalid_fp = c.execute(
+            text("SELECT count(*) FROM building WHERE city_model_id = :m AND NOT ST_IsValid(footprint)"),
+            {"m": m},
+        ).scalar_one()
+        assert invalid_fp == 0
+        no_fp = c.execute(
+            text(
+                "SELECT count(*) FROM building WHERE city_model_id = :m AND NOT is_part AND footprint IS NULL"
+            ),
+            {"m": m},
+        ).scalar_one()
+        assert no_fp == 0
+        rows = c.execute(
+            text(
+                "SELECT b.gml_id, s.gml_id, ST_AsBinary(s.geometry), s.ring_ids, s.ring_closed "
+                "FROM surface s JOIN building b ON b.id = s.building_id "
+                "WHERE s.city_model_id = :m ORDER BY b.ordinal, s.ordinal"
+            ),
+            {"m": m},
+        ).all()
+        # horizontal polygons without reported problems are valid in PostGIS (2D validity applies)
+        bad = c.execute(
+            text(
+                "SELECT count(*) FROM surface WHERE city_model_id = :m AND abs(plane_normal[3]) > 0.99 "
+                "AND jsonb_array_length(checks->'problems') = 0 AND NOT ST_IsValid(geometry)"
+            ),
+            {"m": m},
+        ).scalar_one()
+        assert bad == 0
+    assert [(r[0], r[1]) for r in rows] == [(b.id, p.id) for b in flat for p in b.polygons]
+    worst = 0.0
+    for r, p in zip(rows, polys, strict=True):
+        rings = polygon_rings_from_wkb(r[2])
+        assert list(r[3]) == [x.id for x in p.rings]
+        for got, ring, closed in zip(rings, p.rings, r[4], strict=True):
+            got = got if closed else got[:-1]
+            assert got.shape == ring.coords.shape
+            worst = max(worst, float(np.max(np.abs(got - ring.coords))))
+    assert worst <= 1e-6
+
+
+def test_appearances_of_the_file_are_imported(db_engine, tmp_path) -> None:
+    path = DATA / "berlin-moabit-textured-citygml2-lod2.gml"
+    _, buildings = read_model(path)
+    apps = [a for t in buildings for b in t.iter_buildings() for a in b.appearances]
+    assert len({a.theme for a in apps}) == 3
+    s = import_citygml(db_engine, path, name="apps-moabit")
+    assert s.appearances == len(apps)
+    with db_engine.connect() as c:
+        themes = c.execute(
+            text("SELECT theme, count(*) FROM appearance WHERE city_model_id = :m GROUP BY theme"),
+            {"m": s.model_id},
+        ).all()
+        assert dict(themes) == {t: sum(a.theme == t for a in apps) for t in {a.theme for a in apps}}
+        n_targets = c.execute(
+            text(
+                "SELECT count(*), count(tp.surface_id) FROM texture_param tp JOIN surface_data sd "
+                "ON sd.id = tp.surface_data_id JOIN appearance a ON a.id = sd.appearance_id "
+                "WHERE a.city_model_id = :m"
+            ),
+            {"m": s.model_id},
+        ).one()
+    expected = sum(len(sd.targets) for a in apps for sd in a.surface_data)
+    assert n_targets[0] == expected and n_targets[1] > 0
+    # export writes them back: same themes and targets, valid CityGML 2.0
+    out = export_citygml(db_engine, tmp_path, model="apps-moabit")
+    assert validate_citygml2(out.path) == []
+    _, back = read_model(out.path)
+    back_apps = [a for t in back for b in t.iter_buildings() for a in b.appearances]
+    assert sorted(a.theme for a in back_apps) == sorted(a.theme for a in apps)
+    assert sum(len(sd.targets) for a in back_apps for sd in a.surface_data) == expected
+
+
+def test_reimport_refused_unless_replace_and_full_checks(db_engine) -> None:
+    path = DATA / "bavaria-1-building-citygml2-lod2.gml"
+    first = import_citygml(db_engine, path, name="re-bavaria")
+    with pytest.raises(ModelExistsError):
+        import_citygml(db_engine, path, name="re-bavaria")
+    second = import_citygml(
+        db_engine, path, name="re-bavaria", replace=True, options=ImportOptions(checks="full")
+    )
+    assert second.replaced and second.model_id != first.model_id
+    assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name = 're-bavaria'") == 1
+    assert _scalar(db_engine, "SELECT count(*) FROM building WHERE city_model_id = :m", m=first.model_id) == 0
+    assert (
+        _scalar(db_engine, "SELECT count(*) FROM surface WHERE city_model_id = :m", m=second.model_id) == 84
+    )
+    levels = _scalar(
+        db_engine,
+        "SELECT array_agg(DISTINCT checks->>'level') FROM surface WHERE city_model_id = :m",
+        m=second.model_id,
+    )
+    assert levels == ["full"]
+    walls = _scalar(
+        db_engine,
+        "SELECT count(*) FROM surface WHERE city_model_id = :m AND surface_class = 'WallSurface' "
+        "AND checks ? 'normal_outward'",
+        m=second.model_id,
+    )
+    assert walls > 0
+
+
+def test_failed_import_leaves_nothing(db_engine, monkeypatch) -> None:
+    path = DATA / "berlin-61-buildings-citygml1-lod2.gml"
+    real = importer_mod._write_batch
+    calls = {"n": 0}
+
+    def failing(conn, batch):
+        calls["n"] += 1
+        real(conn, batch)
+        if calls["n"] == 2:
+            raise RuntimeError("disk full (simulated)")
+
+    monkeypatch.setattr(importer_mod, "_write_batch", failing)
+    before = _scalar(db_engine, "SELECT count(*) FROM building")
+    with pytest.raises(RuntimeError, match="simulated"):
+        import_citygml(db_engine, path, name="fails", options=ImportOptions(batch_size=20))
+    assert calls["n"] == 2
+    assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name = 'fails'") == 0
+    assert _scalar(db_engine, "SELECT count(*) FROM building") == before
+
+
+def test_deferred_indexes_and_bbox_export(db_engine, tmp_path) -> None:
+    path = DATA / "berlin-61-buildings-citygml1-lod2.gml"
+    s = import_citygml(
+        db_engine, path, name="bbox-berlin", options=ImportOptions(batch_size=25, defer_spatial_indexes=True)
+    )
+    with db_engine.connect() as c:
+        idx = set(
+            c.execute(
+                text("SELECT indexname FROM pg_indexes WHERE tablename IN ('building', 'surface')")
+            ).scalars()
+        )
+        assert {"ix_building_footprint", "ix_building_envelope", "ix_surface_geometry"} <= idx
+        x0, y0, x1, y1 = c.execute(
+            text(
+                "SELECT ST_XMin(e), ST_YMin(e), ST_XMax(e), ST_YMax(e) FROM (SELECT ST_Extent(envelope) e "
+                "FROM building WHERE city_model_id = :m) q"
+            ),
+            {"m": s.model_id},
+        ).one()
+        box = (x0, y0, (x0 + x1) / 2, (y0 + y1) / 2)
+        expected = (
+            c.execute(
+                text(
+                    "SELECT gml_id FROM building WHERE city_model_id = :m AND NOT is_part "
+                    "AND envelope && ST_MakeEnvelope(:a, :b, :c, :d, :srid) ORDER BY ordinal"
+                ),
+                {"m": s.model_id, "a": box[0], "b": box[1], "c": box[2], "d": box[3], "srid": s.srid},
+            )
+            .scalars()
+            .all()
+        )
+    assert 0 < len(expected) < s.buildings
+    out = export_citygml(db_engine, tmp_path, model="bbox-berlin", bbox=box)
+    _, back = read_model(out.path)
+    assert [b.id for b in back] == expected
+    assert validate_citygml2(out.path) == []
