@@ -7,6 +7,7 @@ ground truth; coordinates in a local metric CRS (x east, y north, z up).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -88,8 +89,8 @@ class Renderer:
 
     buildings: list[Building]
     camera: Camera = CAMERA
-    sky_k: float = 265.0
-    ground_k: float = 279.0
+    sky_k: float = 262.0
+    ground_k: float = 272.5
     windows: bool = True
     blur_sigma: float = 0.7
     noise_k: float = 0.05
@@ -102,9 +103,9 @@ class Renderer:
         temps = []
         for pid in self.mesh.polygon_ids:
             if pid.endswith("_r") or pid.endswith("_rs") or pid.endswith("_rn"):
-                temps.append(270.0 + rng.uniform(-1, 1))
+                temps.append(271.0 + rng.uniform(-0.5, 0.5))
             else:
-                temps.append(284.0 + rng.uniform(-2, 2))
+                temps.append(276.0 + rng.uniform(-1, 1))
         self.temps = np.array(temps)
         H, W = self.camera.height, self.camera.width
         v, u = np.mgrid[0:H, 0:W].astype(np.float64)
@@ -130,7 +131,7 @@ class Renderer:
             win = wall & (np.mod(s, 3.0) > 1.0) & (np.mod(s, 3.0) < 2.2) & (np.mod(z, 3.0) > 1.0) & (
                 np.mod(z, 3.0) < 2.4) & (z < 8.0)
             vals = out[h]
-            vals[win] -= 3.0
+            vals[win] -= 2.5
             out[h] = vals
         img = out.reshape(self.camera.height, self.camera.width).astype(np.float32)
         if self.blur_sigma > 0:
@@ -149,10 +150,40 @@ class ArraySource:
         return self.frames[index]
 
 
+def drive_poses(start: np.ndarray, heading: np.ndarray, n: int, step_m: float = 0.8,
+                forward_deg: float = 25.0, up_deg: float = 12.0) -> list[Pose]:
+    """Side-looking drive: camera at `start` moving along the horizontal `heading`, looking right,
+    turned `forward_deg` toward the front and tilted `up_deg` up."""
+    f = np.asarray(heading, float)
+    f /= np.linalg.norm(f)
+    right = np.array([f[1], -f[0], 0.0])
+    a, e = np.radians(forward_deg), np.radians(up_deg)
+    view = np.cos(e) * (np.cos(a) * right + np.sin(a) * f) + np.array([0, 0, np.sin(e)])
+    return [look_at(np.asarray(start, float) + k * step_m * f,
+                    np.asarray(start, float) + k * step_m * f + view) for k in range(n)]
+
+
+def edge_points(building: Building, spacing_m: float = 0.5) -> np.ndarray:
+    """Points `(N, 3)` every `spacing_m` along all polygon edges of `building` (vertices included)."""
+    out = []
+    for poly in building.iter_polygons():
+        for ring in poly.rings:
+            c = ring.coords
+            for a, b in itertools.pairwise(c):
+                k = max(int(np.ceil(np.linalg.norm(b - a) / spacing_m)), 1)
+                out.append(a + np.linspace(0, 1, k, endpoint=False)[:, None] * (b - a))
+    return np.concatenate(out)
+
+
 def reprojection_rms(camera: Camera, building: Building, pose: Pose, truth: Pose) -> float:
-    """RMS pixel distance of the building's vertices projected with `pose` vs `truth` (in front only)."""
-    pts = np.concatenate([p.exterior.coords for p in building.iter_polygons()])
-    a, za = pose.project(camera, pts)
+    """RMS pixel distance, `pose` vs `truth`, of points along the building's edges that the true
+    pose sees inside the frame and in front (NaN when there are none)."""
+    pts = edge_points(building)
     b, zb = truth.project(camera, pts)
-    ok = (za > 0.5) & (zb > 0.5)
-    return float(np.sqrt(np.mean(np.sum((a[ok] - b[ok]) ** 2, axis=1))))
+    ok = (zb > 1.0) & camera.in_image(b)
+    if not ok.any():
+        return float("nan")
+    a, za = pose.project(camera, pts[ok])
+    d = np.sum((a - b[ok]) ** 2, axis=1)
+    d = np.where((za > 0.1) & np.isfinite(d), d, 1e6)
+    return float(np.sqrt(np.mean(d)))

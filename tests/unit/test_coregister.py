@@ -1,0 +1,114 @@
+"""Per-building orientation on synthetic frames with known true poses and GNSS/INS errors on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.unit.orientation_scenes import (
+    CAMERA,
+    ArraySource,
+    Renderer,
+    box_building,
+    look_at,
+    perturb,
+    reprojection_rms,
+)
+from workers.pipeline.coregister import CoregisterOptions, RefinedPose, prior_information, refine_building
+from workers.pipeline.coregister_frame import apply_delta, pose_delta, project_jacobian
+from workers.pipeline.orientation_quality import efficiency, match_quality, point_quality
+from workers.pipeline.sequence import Accuracy
+
+B1 = box_building("B1", 0, 0, 20, 12, 9, ridge=4)
+B2 = box_building("B2", 24, 2, 10, 10, 6)
+ACC = Accuracy(position_m=np.array([2.0, 2.0, 2.0]), attitude_deg=np.array([0.5, 0.5, 1.0]))
+
+
+@pytest.fixture(scope="module")
+def scene() -> Renderer:
+    return Renderer([B1, B2], seed=4)
+
+
+def _drive(scene: Renderer, n: int, offset_m, rot_deg, noise: float = 0.0, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    truth, prior, frames = {}, {}, {}
+    for i in range(n):
+        truth[i] = look_at([2.0 + 1.5 * i, -38.0, 2.2], [10.0, 6.0, 6.0])
+        frames[i] = scene.render(truth[i], i)
+        prior[i] = perturb(truth[i], np.asarray(offset_m) + rng.normal(0, noise, 3),
+                           np.asarray(rot_deg) + rng.normal(0, noise / 4, 3))
+    return truth, prior, frames
+
+
+def test_jacobian_matches_finite_differences_and_delta_round_trip():
+    pose = look_at([3, -20, 2], [10, 5, 7])
+    X = np.array([[3.0, 0, 5], [10, 0, 9], [15, 3, 12]])
+    uv, _, J = project_jacobian(CAMERA, pose, X)
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = 1e-6
+        uv2, _ = apply_delta(pose, d).project(CAMERA, X)
+        assert np.allclose((uv2 - uv) / 1e-6, J[:, :, k], rtol=1e-4, atol=1e-3)
+    delta = np.array([0.02, -0.01, 0.03, 1.0, -2.0, 0.5])
+    assert np.allclose(pose_delta(pose, apply_delta(pose, delta)), delta, atol=1e-12)
+
+
+def test_prior_information_is_symmetric_positive_and_scaled():
+    pose = look_at([0, -20, 2], [0, 0, 5])
+    opts = CoregisterOptions()
+    info = prior_information(pose, ACC, opts)
+    assert np.allclose(info, info.T) and np.all(np.linalg.eigvalsh(info) > 0)
+    assert np.isclose(info[3, 3], 1.0 / (2.0 * opts.prior_sigma_scale) ** 2)
+
+
+def test_sequence_with_position_and_attitude_errors_is_refined_below_a_pixel(scene):
+    truth, prior, frames = _drive(scene, 5, [2.0, -1.5, 1.0], [1.0, -0.5, 0.5], noise=0.2)
+    out = refine_building(CAMERA, B1, scene.caster, list(frames), ArraySource(frames), prior, ACC,
+                          times={i: 0.1 * i for i in frames})
+    assert set(out) == set(frames)
+    for i, rp in out.items():
+        assert isinstance(rp, RefinedPose) and rp.frame == i
+        before = reprojection_rms(CAMERA, B1, prior[i], truth[i])
+        after = reprojection_rms(CAMERA, B1, rp.pose, truth[i])
+        assert before > 20.0
+        assert rp.status == "refined"
+        assert after < 1.0, (i, before, after)
+        assert np.linalg.norm(rp.pose.center - truth[i].center) < 0.5
+        assert rp.rms_px < 1.0 and rp.matches >= 4
+    assert efficiency([reprojection_rms(CAMERA, B1, prior[i], truth[i]) for i in out],
+                      [reprojection_rms(CAMERA, B1, out[i].pose, truth[i]) for i in out]) == 1.0
+
+
+def test_grossly_wrong_prior_is_rejected_not_refined(scene):
+    _truth, prior, frames = _drive(scene, 1, [20.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    out = refine_building(CAMERA, B1, scene.caster, [0], ArraySource(frames), prior, ACC)
+    assert out[0].status == "prior"
+    assert out[0].pose is prior[0]
+
+
+def test_frame_without_visible_corners_keeps_a_sane_pose(scene):
+    # close to the long wall, looking at its middle: only the eave line and the roof are seen
+    truth = {0: look_at([10.0, -9.0, 2.2], [10.0, 0.0, 9.5])}
+    frames = {0: scene.render(truth[0], 7)}
+    prior = {0: perturb(truth[0], [0.3, -0.3, 0.2], [0.3, 0.2, 0.0])}
+    out = refine_building(CAMERA, B1, scene.caster, [0], ArraySource(frames), prior, ACC)
+    before = reprojection_rms(CAMERA, B1, prior[0], truth[0])
+    after = reprojection_rms(CAMERA, B1, out[0].pose, truth[0])
+    assert np.isfinite(after)
+    if out[0].status == "refined":
+        assert after < 1.5
+    else:
+        assert out[0].pose is prior[0]
+    assert after <= before + 0.5
+    assert np.linalg.norm(out[0].pose.center - truth[0].center) < 1.0
+
+
+def test_quality_measures_of_features_and_matches():
+    true_uv = np.array([[10.0, 10.0], [50.0, 10.0], [50.0, 60.0]])
+    found = np.array([[10.4, 9.8], [80.0, 80.0], [50.2, 60.1], [50.0, 59.9]])
+    comp, corr = point_quality(found, true_uv, tolerance_px=1.0)
+    assert comp == pytest.approx(2 / 3) and corr == pytest.approx(3 / 4)
+    comp, corr = match_quality(np.array([0, 2, 1]), np.array([[10.2, 10.0], [50.0, 60.5], [70.0, 10.0]]),
+                               true_uv, tolerance_px=1.0)
+    assert comp == pytest.approx(2 / 3) and corr == pytest.approx(2 / 3)
+    assert efficiency([5.0, 5.0, 1.0], [1.0, 6.0, 0.5]) == pytest.approx(2 / 3)

@@ -1,0 +1,65 @@
+"""Quality measures of model-to-image coregistration on synthetic ground truth (Avbelj et al. 2012).
+
+In: reprojection errors before/after refinement, extracted image points, matches, and the true
+image positions of model corners (projected with the true pose). Out: shares in 0..1.
+
+- efficiency: share of frames whose refined projection fits the truth better than the prior;
+- completeness / correctness of feature extraction: share of true corner positions with an
+  extracted point within a tolerance / share of extracted points near a true corner position;
+- completeness / correctness of matching: share of model corners correctly matched / share of
+  matches whose image point lies within the tolerance of the matched corner's true position.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def efficiency(error_prior: Sequence[float], error_refined: Sequence[float]) -> float:
+    """Share of frames with `error_refined < error_prior` (errors in px; NaN pairs ignored).
+
+    >>> efficiency([5.0, 5.0, 1.0], [1.0, 6.0, 0.5])
+    0.6666666666666666
+    """
+    a = np.asarray(error_prior, dtype=np.float64)
+    b = np.asarray(error_refined, dtype=np.float64)
+    ok = np.isfinite(a) & ~np.isnan(b)
+    if not ok.any():
+        return float("nan")
+    return float(np.mean(b[ok] < a[ok]))
+
+
+def point_quality(
+    found_uv: np.ndarray, true_uv: np.ndarray, tolerance_px: float = 2.0
+) -> tuple[float, float]:
+    """(completeness, correctness) of extracted points `(N, 2)` against true corner positions `(M, 2)`."""
+    f = np.asarray(found_uv, dtype=np.float64).reshape(-1, 2)
+    t = np.asarray(true_uv, dtype=np.float64).reshape(-1, 2)
+    if len(t) == 0 or len(f) == 0:
+        return (0.0 if len(t) else float("nan")), (0.0 if len(f) else float("nan"))
+    d = np.linalg.norm(f[:, None, :] - t[None, :, :], axis=2)
+    completeness = float(np.mean(d.min(axis=0) <= tolerance_px))
+    correctness = float(np.mean(d.min(axis=1) <= tolerance_px))
+    return completeness, correctness
+
+
+def match_quality(
+    matched_corner: np.ndarray, matched_uv: np.ndarray, true_uv: np.ndarray, tolerance_px: float = 2.0
+) -> tuple[float, float]:
+    """(completeness, correctness) of matches.
+
+    Args:
+        matched_corner: `(K,)` index into `true_uv` of the model corner of each match.
+        matched_uv: `(K, 2)` image point each corner was matched to.
+        true_uv: `(M, 2)` true image positions of the visible model corners.
+    """
+    idx = np.asarray(matched_corner, dtype=int).reshape(-1)
+    uv = np.asarray(matched_uv, dtype=np.float64).reshape(-1, 2)
+    t = np.asarray(true_uv, dtype=np.float64).reshape(-1, 2)
+    if len(idx) == 0:
+        return (0.0 if len(t) else float("nan")), float("nan")
+    good = np.linalg.norm(uv - t[idx], axis=1) <= tolerance_px
+    completeness = float(len(np.unique(idx[good])) / len(t)) if len(t) else float("nan")
+    return completeness, float(np.mean(good))
