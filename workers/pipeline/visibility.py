@@ -12,6 +12,7 @@ lies between it and the projection centre.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -47,11 +48,10 @@ class VisibilityOptions:
     depth_tolerance_rel: float = 0.02
 
 
-def frustum_planes(camera: Camera, pose: Pose, margin_px: float = 0.0) -> np.ndarray:
-    """Side planes of the viewing frustum in world coordinates, `(4, 4)` rows `[n, d]` with
-    `n · X + d >= 0` inside. Built through the projection centre and the rays of the four image
-    corners and edge midpoints (distortion included), so that it slightly over-covers the frame.
-    """
+@functools.lru_cache(maxsize=64)
+def _frustum_extent(camera: Camera, margin_px: float) -> tuple[float, float, float, float]:
+    """Normalised image-plane extent `(a_lo, a_hi, b_lo, b_hi)` of a camera's frame grown by
+    `margin_px`, from the rays of the four corners and edge midpoints (distortion included)."""
     w, h = camera.width - 1.0, camera.height - 1.0
     m = -margin_px
     # corners plus edge midpoints: with barrel distortion the edge midpoints bulge outward
@@ -68,10 +68,16 @@ def frustum_planes(camera: Camera, pose: Pose, margin_px: float = 0.0) -> np.nda
         ]
     )
     rays_c = camera.bearing(border)
-    # over-cover: take the widest normalised extent in each direction
     ab = rays_c[:, :2] / rays_c[:, 2:]
-    a_lo, a_hi = ab[:, 0].min(), ab[:, 0].max()
-    b_lo, b_hi = ab[:, 1].min(), ab[:, 1].max()
+    return float(ab[:, 0].min()), float(ab[:, 0].max()), float(ab[:, 1].min()), float(ab[:, 1].max())
+
+
+def frustum_planes(camera: Camera, pose: Pose, margin_px: float = 0.0) -> np.ndarray:
+    """Side planes of the viewing frustum in world coordinates, `(4, 4)` rows `[n, d]` with
+    `n · X + d >= 0` inside. Built through the projection centre and the widest normalised extent
+    of the image border (distortion included), so that it slightly over-covers the frame.
+    """
+    a_lo, a_hi, b_lo, b_hi = _frustum_extent(camera, float(margin_px))
     # planes in camera frame through the origin: a >= a_lo  <=>  x - a_lo z >= 0, etc.
     n_c = np.array([[1.0, 0.0, -a_lo], [-1.0, 0.0, a_hi], [0.0, 1.0, -b_lo], [0.0, -1.0, b_hi]])
     n_w = n_c @ pose.R_world_from_cam.T
@@ -169,51 +175,60 @@ def project_texels(
     return TexelProjection(uv=uv, depth=depth, distance=distance, cos_view=cos_view, ok=ok)
 
 
+@functools.lru_cache(maxsize=4)
 def pixel_rays(camera: Camera) -> np.ndarray:
     """Unit rays `(H, W, 3)` float32 through every pixel centre, camera frame (distortion removed).
 
-    Computed once per camera and unit; a frame's world rays are `rays @ R_world_from_camᵀ`.
+    Cached per camera (read-only array); a frame's world rays are `rays @ R_world_from_camᵀ`.
     """
     uu, vv = np.meshgrid(
         np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64)
     )
     rays = camera.bearing(np.stack([uu.ravel(), vv.ravel()], axis=1))
-    return rays.reshape(camera.height, camera.width, 3).astype(np.float32)
+    out = rays.reshape(camera.height, camera.width, 3).astype(np.float32)
+    out.flags.writeable = False
+    return out
 
 
 @dataclass(frozen=True, eq=False)
 class HitBuffer:
-    """What every pixel of a window of a frame sees: first-hit distance and polygon.
+    """What the pixels bilinear sampling reads see in one frame: first-hit distance and polygon.
 
     Attributes:
-        u0, v0: pixel of the window's top-left element.
-        t: `(h, w)` float32 distance from the projection centre to the first hit (inf: nothing).
-        polygon: `(h, w)` int32 index into the scene's `polygon_ids` (-1: nothing).
+        t: `(H, W)` float32 distance from the projection centre to the first hit (inf: nothing,
+            or a pixel that was not cast).
+        polygon: `(H, W)` int32 index into the scene's `polygon_ids` (-1: nothing / not cast).
     """
 
-    u0: int
-    v0: int
     t: np.ndarray
     polygon: np.ndarray
 
 
+def _neighbour_pixels(uv: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """Top-left pixel `(row, col)` `(N,)` of the 2x2 bilinear neighbourhood of each `uv (N, 2)`."""
+    c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp), 0, max(W - 2, 0))
+    r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp), 0, max(H - 2, 0))
+    return r0, c0
+
+
 def hit_buffer(raycaster: RayCaster, rays: np.ndarray, pose: Pose, uv: np.ndarray) -> HitBuffer:
-    """Cast the pixel rays `rays (H, W, 3)` of the window covering pixels `uv (N, 2)` (plus one
-    pixel) from the projection centre of `pose` through the scene."""
+    """Cast the pixel rays `rays (H, W, 3)` (camera frame) of the pixels that bilinear sampling at
+    `uv (N, 2)` reads, from the projection centre of `pose` through the scene."""
     H, W = rays.shape[:2]
-    u0 = max(int(np.floor(np.nanmin(uv[:, 0]))) - 1, 0)
-    v0 = max(int(np.floor(np.nanmin(uv[:, 1]))) - 1, 0)
-    u1 = min(int(np.ceil(np.nanmax(uv[:, 0]))) + 2, W)
-    v1 = min(int(np.ceil(np.nanmax(uv[:, 1]))) + 2, H)
-    win = rays[v0:v1, u0:u1].reshape(-1, 3).astype(np.float64) @ pose.R_world_from_cam.T
-    hits = raycaster.cast(np.broadcast_to(pose.center, win.shape), win)
-    shape = (v1 - v0, u1 - u0)
-    return HitBuffer(
-        u0=u0,
-        v0=v0,
-        t=hits.t.astype(np.float32).reshape(shape),
-        polygon=hits.polygon.astype(np.int32).reshape(shape),
-    )
+    need = np.zeros((H, W), dtype=bool)
+    r0, c0 = _neighbour_pixels(uv, H, W)
+    r1, c1 = np.minimum(r0 + 1, H - 1), np.minimum(c0 + 1, W - 1)
+    for r in (r0, r1):
+        for c in (c0, c1):
+            need[r, c] = True
+    rr, cc = np.nonzero(need)
+    dirs = rays[rr, cc] @ pose.R_world_from_cam.T.astype(np.float32)
+    hits = raycaster.cast(np.broadcast_to(pose.center, dirs.shape), dirs)
+    t = np.full((H, W), np.inf, np.float32)
+    poly = np.full((H, W), -1, np.int32)
+    t[rr, cc] = hits.t
+    poly[rr, cc] = hits.polygon
+    return HitBuffer(t=t, polygon=poly)
 
 
 def consistent_samples(
@@ -224,18 +239,13 @@ def consistent_samples(
     within `depth_tolerance_m + depth_tolerance_rel · distance`. This is the occlusion test (an
     occluder in front fails it) and keeps samples from mixing the surface with the sky, the
     background or an occluder at silhouette edges."""
-    h, w = buffer.t.shape
-    c0 = np.floor(uv[:, 0]).astype(np.intp) - buffer.u0
-    r0 = np.floor(uv[:, 1]).astype(np.intp) - buffer.v0
+    H, W = buffer.t.shape
+    r0, c0 = _neighbour_pixels(uv, H, W)
     tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
     ok = np.ones(len(uv), dtype=bool)
-    for dr in (0, 1):
-        for dc in (0, 1):
-            r = np.clip(r0 + dr, 0, h - 1)
-            c = np.clip(c0 + dc, 0, w - 1)
-            same = buffer.polygon[r, c] == polygon
-            near = np.abs(buffer.t[r, c] - distance) <= tol
-            ok &= same | near
+    for r in (r0, np.minimum(r0 + 1, H - 1)):
+        for c in (c0, np.minimum(c0 + 1, W - 1)):
+            ok &= (buffer.polygon[r, c] == polygon) | (np.abs(buffer.t[r, c] - distance) <= tol)
     return ok
 
 
