@@ -208,6 +208,7 @@ def _refine(unit: BuildingUnit, raycaster: RayCaster) -> tuple[dict[int, Pose], 
         coregister = importlib.import_module("workers.pipeline.coregister")
     except ImportError:
         return prior, ()
+    extra = {} if unit.options.refine_options is None else {"options": unit.options.refine_options}
     refined = coregister.refine_building(
         unit.camera,
         unit.building,
@@ -216,8 +217,8 @@ def _refine(unit: BuildingUnit, raycaster: RayCaster) -> tuple[dict[int, Pose], 
         unit.frame_source,
         prior,
         unit.accuracy,
-        unit.options.refine_options,
-        dict(zip(unit.frames, unit.times, strict=True)),
+        times=dict(zip(unit.frames, unit.times, strict=True)),
+        **extra,
     )
     poses = dict(prior)
     records = []
