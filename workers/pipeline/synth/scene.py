@@ -1,0 +1,265 @@
+"""One call from buildings to a synthetic TIR sequence with ground truth: `synthesize`.
+
+In: buildings (`citymodel.Building`, model CRS, metres) and `SynthOptions`. Out: `SynthResult`:
+the `SequenceManifest` (what a package's `sequence.json` holds: recorded INS poses, nominal
+mounting), the frames as a lazy `SynthFrames` (uint16 DN on indexing, float32 kelvin through
+`load`, rendered on demand, identical every time), the `SynthTruth` (true poses, mounting, delay,
+anomalies) and the `ThermalScene` (true temperature of any surface point).
+
+Pure computation; writing a package and the truth file is `synth.io.write_synthetic_package`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+import numpy as np
+import shapely
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.citymodel import Building
+from workers.pipeline.raycast import SceneMesh, build_scene_mesh
+from workers.pipeline.sequence import FrameRecord, GroundControl, SequenceManifest
+from workers.pipeline.synth.common import SynthError, rng_for
+from workers.pipeline.synth.errors import ErrorOptions, InsSimulation, simulate_ins
+from workers.pipeline.synth.render import RADIOMETRY, Renderer, SensorOptions, default_camera
+from workers.pipeline.synth.shapes import footprint
+from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
+from workers.pipeline.synth.trajectory import (
+    DriveOptions,
+    FlightOptions,
+    PathTrajectory,
+    camera_to_body,
+    choose_cluster,
+    drive_loop,
+    flight_loop,
+)
+from workers.pipeline.synth.truth import SynthTruth
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    """Everything `synthesize` needs besides the buildings."""
+
+    platform: Literal["drive", "flight"] = "drive"
+    n_frames: int = 100
+    seed: int = 0
+    buildings: int | tuple[str, ...] = 5  # the cluster: a count (around a central building) or ids
+    frame_interval_s: float = 0.1
+    t0: float = 1000.0  # time stamp of the first frame, seconds
+    camera: Camera | None = None  # None: `default_camera()` (640×512, 45°, mild barrel)
+    drive: DriveOptions = field(default_factory=DriveOptions)
+    flight: FlightOptions = field(default_factory=FlightOptions)
+    errors: ErrorOptions = field(default_factory=ErrorOptions)
+    thermal: ThermalOptions = field(default_factory=ThermalOptions)
+    sensor: SensorOptions = field(default_factory=SensorOptions)
+    crs: str | None = None  # manifest crs; None: the buildings' srsName if it is "EPSG:n", else "model"
+    scene_radius_m: float | None = None  # render only buildings this close to the path; None: auto
+    ground_z: float | None = None  # ground plane height; None: median base of the cluster
+    n_gcps: int = 0  # ground control points (cluster building corners) with observations
+    gcp_pixel_sigma: float = 0.3  # noise of the GCP image observations, pixels
+    model_path: str | None = None  # recorded in the truth
+    procedural: tuple[int, int] | None = None  # (n_buildings, seed) recorded when procedural
+    frame_ext: str = "png"  # "png" (16-bit) or "tif"
+
+
+class SynthFrames:
+    """Lazy frames of a synthetic sequence: `frames[i]` -> `(H, W)` uint16 DN; `load(i)` ->
+    `(H, W)` float32 kelvin (`DN · 0.01`, a `FrameSource`). Rendered on demand, deterministic;
+    picklable (the ray-casting scene is rebuilt in the receiving process)."""
+
+    def __init__(self, renderer: Renderer, poses: Sequence) -> None:
+        self.renderer = renderer
+        self.poses = tuple(poses)
+        self._cache: tuple[int, np.ndarray] | None = None
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        i = int(index)
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame {index} out of range (0..{len(self) - 1})")
+        i %= len(self)
+        if self._cache is None or self._cache[0] != i:
+            self._cache = (i, self.renderer.frame_dn(self.poses[i], i))
+        return self._cache[1]
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def load(self, index: int) -> np.ndarray:
+        """Frame `index` as float32 kelvin, exactly what a reader of the written package returns."""
+        return RADIOMETRY.physical(self[index])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_cache"] = None
+        return state
+
+
+@dataclass(frozen=True, eq=False)
+class SynthResult:
+    """Output of `synthesize` (see the module docstring). `buildings` are the rendered ones."""
+
+    manifest: SequenceManifest
+    frames: SynthFrames
+    truth: SynthTruth
+    thermal: ThermalScene
+    mesh: SceneMesh
+    buildings: tuple[Building, ...]
+    ins: InsSimulation
+    renderer: Renderer
+
+
+def _manifest_crs(buildings: Sequence[Building], crs: str | None) -> str:
+    if crs:
+        return crs
+    srs = next((b.srs_name for b in buildings if b.srs_name), None)
+    if srs and srs.upper().startswith("EPSG:"):
+        return srs
+    return "model"
+
+
+def _scene_buildings(
+    buildings: Sequence[Building], loop: np.ndarray, radius: float, keep: set[int]
+) -> list[int]:
+    """Indices of the buildings within `radius` of the loop (the cluster always kept)."""
+    ring = shapely.LinearRing(loop)
+    return [i for i, b in enumerate(buildings) if i in keep or ring.distance(footprint(b)) <= radius]
+
+
+def _gcps(
+    buildings: Sequence[Building], renderer: Renderer, poses: Sequence, n: int, sigma: float, seed: int
+) -> GroundControl | None:
+    """Up to `n` GCPs at the cluster's building vertices, observed where visible (true poses)."""
+    if n <= 0:
+        return None
+    coords = [r.coords for b in buildings for p in b.iter_polygons() for r in p.rings]
+    pts = np.unique(np.round(np.concatenate(coords), 3), axis=0)
+    rng = rng_for(seed, "gcps")
+    pick = pts[rng.choice(len(pts), size=min(n, len(pts)), replace=False)]
+    from workers.pipeline.raycast import RayCaster
+
+    caster = RayCaster(renderer.mesh)
+    points = {f"G{i + 1}": (xyz, 0.01) for i, xyz in enumerate(pick)}
+    obs: list[tuple[int, str, np.ndarray]] = []
+    cam = renderer.camera
+    for k, pose in enumerate(poses):
+        uv, depth = pose.project(cam, pick)
+        ok = (depth > 0) & cam.in_image(uv, margin=2.0)
+        if not np.any(ok):
+            continue
+        ok[ok] = caster.visible(pick[ok], pose.center, tolerance_m=0.1)
+        for i in np.flatnonzero(ok):
+            obs.append((k, f"G{i + 1}", uv[i] + sigma * rng.standard_normal(2)))
+    return GroundControl(points=points, observations=tuple(obs))
+
+
+def synthesize(buildings: Sequence[Building], options: SynthOptions | None = None) -> SynthResult:
+    """Build a synthetic sequence of `buildings` (see the module docstring)."""
+    o = options or SynthOptions()
+    blds = list(buildings)
+    if not blds:
+        raise SynthError("buildings: none given")
+    if o.n_frames < 1:
+        raise SynthError(f"n_frames must be >= 1, got {o.n_frames}")
+    if o.frame_interval_s <= 0:
+        raise SynthError(f"frame_interval_s must be positive, got {o.frame_interval_s}")
+    if o.platform not in ("drive", "flight"):
+        raise SynthError(f"platform must be 'drive' or 'flight', got {o.platform!r}")
+    cluster = choose_cluster(blds, o.buildings if isinstance(o.buildings, int) else list(o.buildings), o.seed)
+    ground_z = o.ground_z
+    if ground_z is None:
+        ground_z = float(np.median([blds[i].bounds()[0][2] for i in cluster]))
+    if o.platform == "drive":
+        loop, cluster = drive_loop(blds, cluster, o.drive)
+        height, speed, bank, sway = o.drive.height_m, o.drive.speed_mps, False, o.drive.sway_deg
+        radius = o.scene_radius_m if o.scene_radius_m is not None else 150.0
+    else:
+        if not 20.0 <= o.flight.height_m <= 2000.0:
+            raise SynthError(f"flight height_m must be 20..2000 m, got {o.flight.height_m}")
+        loop = flight_loop(blds, cluster, o.flight)
+        height, speed, bank, sway = o.flight.height_m, o.flight.speed_mps, True, o.flight.sway_deg
+        reach = o.flight.height_m / np.tan(np.radians(o.flight.look_down_deg))
+        radius = o.scene_radius_m if o.scene_radius_m is not None else 2.5 * reach
+    rng = rng_for(o.seed, "trajectory")
+    traj = PathTrajectory(
+        loop, ground_z + height, speed, start_m=float(rng.uniform(0, 1e6)), t0=o.t0, bank=bank,
+        sway_deg=sway, seed=o.seed,
+    )  # fmt: skip
+    if o.platform == "drive":
+        M = camera_to_body(o.drive.look_forward_deg, o.drive.look_up_deg)
+    else:
+        M = camera_to_body(0.0, -(o.flight.look_down_deg - traj.mean_bank_deg))
+
+    keep = _scene_buildings(blds, loop, radius, set(cluster))
+    scene = [blds[i] for i in keep]
+    mesh = build_scene_mesh(scene)
+    thermal = ThermalScene(scene, mesh.polygon_ids, seed=o.seed, options=o.thermal)
+    camera = o.camera or default_camera()
+    renderer = Renderer(mesh, thermal, camera, ground_z, o.sensor, seed=o.seed)
+
+    times = o.t0 + o.frame_interval_s * np.arange(o.n_frames)
+    ins = simulate_ins(traj.state, times, M, o.platform, o.errors, o.seed)
+    ext = o.frame_ext.lower().lstrip(".")
+    if ext not in ("png", "tif"):
+        raise SynthError(f"frame_ext must be 'png' or 'tif', got {o.frame_ext!r}")
+    frames = tuple(
+        FrameRecord(
+            index=i,
+            file=f"frames/{i:06d}.{ext}",
+            time=float(times[i]),
+            position=ins.frame_positions[i],
+            attitude_deg=ins.frame_attitudes[i],
+        )
+        for i in range(o.n_frames)
+    )
+    gcps = _gcps([blds[i] for i in cluster], renderer, ins.poses, o.n_gcps, o.gcp_pixel_sigma, o.seed)
+    manifest = SequenceManifest(
+        platform=o.platform,
+        crs=_manifest_crs(scene, o.crs),
+        camera=camera,
+        radiometry=RADIOMETRY,
+        mounting=ins.manifest_mounting,
+        frames=frames,
+        heading_reference="grid",
+        accuracy=ins.accuracy,
+        imu=ins.imu,
+        gcps=gcps,
+    )
+    truth = SynthTruth(
+        seed=o.seed,
+        platform=o.platform,
+        crs=manifest.crs,
+        model_path=o.model_path,
+        procedural={"n_buildings": o.procedural[0], "seed": o.procedural[1]} if o.procedural else None,
+        buildings=tuple(b.id for b in scene),
+        cluster=tuple(blds[i].id for i in cluster),
+        ground_z=float(ground_z),
+        frame_times=times,
+        exposure_times=times - ins.time_delay_s,
+        poses=ins.poses,
+        true_mounting=ins.true_mounting,
+        manifest_mounting=ins.manifest_mounting,
+        time_delay_s=ins.time_delay_s,
+        position_error=ins.position_error,
+        attitude_error=ins.attitude_error,
+        anomalies=thermal.anomalies,
+        thermal=o.thermal,
+        sensor=o.sensor,
+        errors=asdict(o.errors),
+    )
+    return SynthResult(
+        manifest=manifest,
+        frames=SynthFrames(renderer, ins.poses),
+        truth=truth,
+        thermal=thermal,
+        mesh=mesh,
+        buildings=tuple(scene),
+        ins=ins,
+        renderer=renderer,
+    )

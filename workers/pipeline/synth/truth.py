@@ -1,0 +1,166 @@
+"""Ground truth of a synthetic sequence (`citytherm-synth-truth/1`), documented in
+`docs/synth-truth.md`.
+
+In: what `synthesize` knows (true poses, mounting, delay, anomalies, options). Out: a
+`SynthTruth` and its JSON form (`to_dict` / `from_dict`; files via `synth.io`). Poses are
+`R_wc` (camera to world, rows) and `C` (world, model CRS, metres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from workers.pipeline.pose import Pose
+from workers.pipeline.sequence import Mounting
+from workers.pipeline.synth.anomaly import Anomaly
+from workers.pipeline.synth.common import SynthError
+from workers.pipeline.synth.render import SensorOptions
+from workers.pipeline.synth.thermal import ThermalOptions
+
+TRUTH_FORMAT = "citytherm-synth-truth/1"
+
+
+def _mounting_to_dict(m: Mounting) -> dict[str, Any]:
+    return {
+        "camera_to_body": np.asarray(m.camera_to_body, float).reshape(3, 3).tolist(),
+        "boresight_deg": np.asarray(m.boresight_deg, float).reshape(3).tolist(),
+        "lever_arm_m": np.asarray(m.lever_arm_m, float).reshape(3).tolist(),
+    }
+
+
+def _mounting_from_dict(d: dict[str, Any]) -> Mounting:
+    return Mounting(
+        np.asarray(d["camera_to_body"], float).reshape(3, 3),
+        np.asarray(d["boresight_deg"], float).reshape(3),
+        np.asarray(d["lever_arm_m"], float).reshape(3),
+    )
+
+
+def _options_from_dict(cls: type, d: dict[str, Any] | None) -> Any:
+    """Rebuild a frozen options dataclass from its `asdict` form (lists -> tuples)."""
+    if not d:
+        return cls()
+    names = {f.name for f in fields(cls)}
+    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names}
+    return cls(**kw)
+
+
+@dataclass(frozen=True, eq=False)
+class SynthTruth:
+    """Everything true about a synthetic sequence.
+
+    Attributes:
+        seed: the scene seed (thermal field, trajectory, errors, noise).
+        platform: `"drive"` or `"flight"`.
+        crs: the manifest's `crs`.
+        model_path: CityGML file the buildings came from (None: procedural or in memory).
+        procedural: `{"n_buildings", "seed"}` when the buildings came from `procedural_block`.
+        buildings: ids of all rendered buildings (the scene).
+        cluster: ids of the buildings the trajectory goes around.
+        ground_z: height of the ground plane, metres.
+        frame_times: `(F,)` stamps as in the manifest, seconds.
+        exposure_times: `(F,)` true exposure times `frame_times − time_delay_s`.
+        poses: true camera pose per frame (`R_world_from_cam`, `center`).
+        true_mounting: the platform's real mounting (boresight, lever arm).
+        manifest_mounting: the mounting the manifest states.
+        time_delay_s: true camera-to-INS delay δ.
+        position_error: `(F, 3)` recorded minus true INS position at the stamps, metres.
+        attitude_error: `(F, 3)` recorded minus true INS attitude at the stamps, degrees.
+        anomalies: planted leaks.
+        thermal: options of the temperature field.
+        sensor: sensor effects.
+        errors: the error-model options as given (`asdict` form).
+        package: package folder the truth belongs to (relative to the truth file or absolute).
+    """
+
+    seed: int
+    platform: str
+    crs: str
+    model_path: str | None
+    procedural: dict[str, int] | None
+    buildings: tuple[str, ...]
+    cluster: tuple[str, ...]
+    ground_z: float
+    frame_times: np.ndarray
+    exposure_times: np.ndarray
+    poses: tuple[Pose, ...]
+    true_mounting: Mounting
+    manifest_mounting: Mounting
+    time_delay_s: float
+    position_error: np.ndarray
+    attitude_error: np.ndarray
+    anomalies: tuple[Anomaly, ...]
+    thermal: ThermalOptions
+    sensor: SensorOptions
+    errors: dict[str, Any]
+    package: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of the truth file."""
+        return {
+            "format": TRUTH_FORMAT,
+            "seed": self.seed,
+            "platform": self.platform,
+            "crs": self.crs,
+            "model_path": self.model_path,
+            "procedural": self.procedural,
+            "package": self.package,
+            "buildings": list(self.buildings),
+            "cluster": list(self.cluster),
+            "ground_z": self.ground_z,
+            "time_delay_s": self.time_delay_s,
+            "true_mounting": _mounting_to_dict(self.true_mounting),
+            "manifest_mounting": _mounting_to_dict(self.manifest_mounting),
+            "frames": [
+                {
+                    "index": i,
+                    "time": float(self.frame_times[i]),
+                    "exposure_time": float(self.exposure_times[i]),
+                    "R_wc": p.R_world_from_cam.tolist(),
+                    "C": p.center.tolist(),
+                    "position_error_m": self.position_error[i].tolist(),
+                    "attitude_error_deg": self.attitude_error[i].tolist(),
+                }
+                for i, p in enumerate(self.poses)
+            ],
+            "anomalies": [a.to_dict() for a in self.anomalies],
+            "thermal": asdict(self.thermal),
+            "sensor": asdict(self.sensor),
+            "errors": dict(self.errors),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SynthTruth:
+        """Inverse of `to_dict`; raises `SynthError` naming a missing or bad field."""
+        if d.get("format") != TRUTH_FORMAT:
+            raise SynthError(f"truth: format must be {TRUTH_FORMAT!r}, got {d.get('format')!r}")
+        try:
+            frames = d["frames"]
+            return cls(
+                seed=int(d["seed"]),
+                platform=str(d["platform"]),
+                crs=str(d["crs"]),
+                model_path=d.get("model_path"),
+                procedural=d.get("procedural"),
+                buildings=tuple(d["buildings"]),
+                cluster=tuple(d["cluster"]),
+                ground_z=float(d["ground_z"]),
+                frame_times=np.array([f["time"] for f in frames], float),
+                exposure_times=np.array([f["exposure_time"] for f in frames], float),
+                poses=tuple(Pose(np.array(f["R_wc"], float), np.array(f["C"], float)) for f in frames),
+                true_mounting=_mounting_from_dict(d["true_mounting"]),
+                manifest_mounting=_mounting_from_dict(d["manifest_mounting"]),
+                time_delay_s=float(d["time_delay_s"]),
+                position_error=np.array([f["position_error_m"] for f in frames], float).reshape(-1, 3),
+                attitude_error=np.array([f["attitude_error_deg"] for f in frames], float).reshape(-1, 3),
+                anomalies=tuple(Anomaly.from_dict(a) for a in d.get("anomalies", [])),
+                thermal=_options_from_dict(ThermalOptions, d.get("thermal")),
+                sensor=_options_from_dict(SensorOptions, d.get("sensor")),
+                errors=dict(d.get("errors") or {}),
+                package=d.get("package"),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SynthError(f"truth: missing or bad field ({exc})") from exc
