@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from workers.pipeline.citymodel import Building
 from workers.pipeline.synth.common import SynthError
@@ -48,18 +50,22 @@ def load_truth(path: str | os.PathLike[str]) -> SynthTruth:
 
 
 def write_synthetic_package(
-    result: SynthResult, out_dir: str | os.PathLike[str], truth_path: str | os.PathLike[str] | None = None
+    result: SynthResult,
+    out_dir: str | os.PathLike[str],
+    truth_path: str | os.PathLike[str] | None = None,
+    frames: Iterable[np.ndarray] | None = None,
 ) -> Path:
     """Render every frame and write the package folder `out_dir`; write the truth to
     `truth_path` (default: `<out_dir>.truth.json`, next to the package). Returns the package
-    folder. The truth's `package` names the folder relative to the truth file."""
+    folder. The truth's `package` names the folder relative to the truth file. `frames`
+    replaces `result.frames` as the source of the images (e.g. wrapped for a progress bar)."""
     from db.sequence_package import write_package  # file I/O lives in db/
 
     out = Path(out_dir)
     tp = Path(truth_path) if truth_path is not None else out.with_name(out.name + ".truth.json")
     if tp.resolve().is_relative_to(out.resolve()):
         raise SynthError(f"truth path {tp} must not be inside the package {out}")
-    write_package(out, result.manifest, result.frames)
+    write_package(out, result.manifest, result.frames if frames is None else frames)
     rel = os.path.relpath(out.resolve(), tp.resolve().parent)
     save_truth(replace(result.truth, package=rel), tp)
     return out
