@@ -8,8 +8,9 @@ bit-exact, texture coordinates exact), and `OUT/<imageURI>` for every stored tex
 
 Streamed: the top-level building ids are listed first (one integer each), then buildings are
 fetched in batches of `ExportOptions.batch_size` and handed to the writer one by one, so memory
-does not grow with the model. Appearances imported with the file are written as the buildings' own;
-job appearances as `extra_appearances` of their building (as the in-process run does). With a
+does not grow with the model. Each building's appearances are those imported with the file, then
+the jobs' (the order in which the writer puts a building's own and its `extra_appearances`, so the
+output equals the in-process `textured.gml`). With a
 theme only that theme's appearances are written, and only buildings that have one.
 """
 
@@ -138,28 +139,32 @@ def _safe_uri(uri: str) -> str:
 
 
 class _Images:
-    """Writes texture images once; a second image under the same URI gets a unique one."""
+    """Writes texture images once each; a different image under a URI already taken gets a
+    unique URI (`<stem>_<image id><suffix>`)."""
 
     def __init__(self, out: Path) -> None:
         self.out = out
-        self.by_uri: dict[str, str] = {}  # uri -> sha256 written there
+        self.reserved: dict[str, str] = {}  # uri -> sha256 of the image placed there
+        self.written: set[str] = set()
         self.count = 0
 
     def place(self, uri: str, sha: str, image_id: int) -> str:
         """URI to write image `image_id` with checksum `sha` under (the stored one if free)."""
         uri = _safe_uri(uri)
-        if self.by_uri.get(uri, sha) != sha:
+        if self.reserved.setdefault(uri, sha) != sha:
             p = PurePosixPath(uri)
             uri = str(p.with_name(f"{p.stem}_{image_id}{p.suffix}"))
+            self.reserved[uri] = sha
         return uri
 
-    def write(self, uri: str, sha: str, data: bytes) -> None:
-        if uri in self.by_uri:
+    def write(self, uri: str, data: bytes) -> None:
+        """Write the bytes of a placed image (once)."""
+        if uri in self.written:
             return
         path = self.out / uri
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(data)
-        self.by_uri[uri] = sha
+        self.written.add(uri)
         self.count += 1
 
 
@@ -241,13 +246,13 @@ def _assemble(
         .all()
     ):
         params[tp["surface_data_id"]].append(tp)
-    wanted: dict[int, tuple[str, str]] = {}
+    wanted: dict[int, list[str]] = defaultdict(list)
     by_app: dict[int, list[Any]] = defaultdict(list)
     for sd in sds:
         data = surface_data_from_rows(sd, params.get(sd["id"], []))
         if sd["tex_image_id"] is not None and isinstance(data, ParameterizedTexture):
             uri = images.place(data.image_uri, sd["tex_sha"], sd["tex_image_id"])
-            wanted[sd["tex_image_id"]] = (uri, sd["tex_sha"])
+            wanted[sd["tex_image_id"]].append(uri)
             if uri != data.image_uri:
                 data = replace(data, image_uri=uri)
         by_app[sd["appearance_id"]].append(data)
@@ -255,8 +260,8 @@ def _assemble(
         for iid, blob in conn.execute(
             text("SELECT id, image FROM tex_image WHERE id = ANY(:i)"), {"i": list(wanted)}
         ).all():
-            uri, sha = wanted[iid]
-            images.write(uri, sha, bytes(blob))
+            for uri in wanted[iid]:
+                images.write(uri, bytes(blob))
     for a in apps:
         sd_list = by_app.get(a["id"], [])
         if not sd_list:
@@ -271,9 +276,8 @@ def _batch(
     f: _Filter,
     roots: Sequence[int],
     images: _Images,
-    extra_out: dict[str, list[Appearance]],
 ) -> list[Building]:
-    """Rebuild the top-level buildings `roots` (parts nested); job appearances go to `extra_out`."""
+    """Rebuild the top-level buildings `roots` (parts nested) with their appearances."""
     brows = (
         conn.execute(
             text(
@@ -310,8 +314,6 @@ def _batch(
 
     def build(bid: int, parent_gml: str | None) -> Building:
         r = by_id[bid]
-        if extra.get(bid):
-            extra_out[r["gml_id"]] = extra[bid]
         return Building(
             id=r["gml_id"],
             polygons=tuple(polys.get(bid, ())),
@@ -320,7 +322,8 @@ def _batch(
             is_part=r["is_part"],
             parent_id=parent_gml,
             srs_name=r["srs_name"],
-            appearances=tuple(own.get(bid, ())),
+            # the file's own appearances, then the jobs' (the writer's order for extra appearances)
+            appearances=(*own.get(bid, ()), *extra.get(bid, ())),
             name=r["name"],
             generated_id=r["generated_id"],
         )
@@ -375,19 +378,16 @@ def export_citygml(
             .all()
         )
         own_model, extra_model = _assemble(conn, model_apps, images)
-        extra: dict[str, list[Appearance]] = {}
 
         def stream() -> Iterator[Building]:
             for i in range(0, len(roots), opts.batch_size):
-                extra.clear()
-                yield from _batch(conn, f, roots[i : i + opts.batch_size], images, extra)
+                yield from _batch(conn, f, roots[i : i + opts.batch_size], images)
 
         gml = out / opts.gml_name
         n = write_citygml(
             gml,
             stream(),
             srs_name=m["srs_name"],
-            extra_appearances=extra,
             envelope=envelope,
             model_appearances=[*own_model.get(None, []), *extra_model.get(None, [])],  # type: ignore[call-overload]
             name=m["gml_name"],
