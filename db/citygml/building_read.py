@@ -32,6 +32,8 @@ from db.citygml.appearance_read import AppearanceDraft, finish_appearance, parse
 from db.citygml.names import (
     BOUNDARY_CLASSES,
     CORE_ATTRIBUTES,
+    GML32_NS,
+    GML_NS,
     MULTI_ATTRIBUTES,
     STANDARD_ATTRIBUTES,
     XLINK_HREF,
@@ -102,6 +104,24 @@ class _Draft:
     name: str | None = None
     srs: str | None = None
     envelope_srs: str | None = None
+
+
+_MEMBER_TAGS = frozenset({f"{{{GML_NS}}}surfaceMember", f"{{{GML32_NS}}}surfaceMember"})
+_POLYGON_TAGS = frozenset({f"{{{GML_NS}}}Polygon", f"{{{GML32_NS}}}Polygon"})
+_PROP_LOD: dict[object, int] = {}
+
+
+def _prop_lod(tag: object) -> int:
+    """LoD of a geometry property tag (`lod2Solid`, `lod1MultiSurface`, `lod3Geometry`, ...), -1
+    for any other tag (cached per tag)."""
+    lod = _PROP_LOD.get(tag)
+    if lod is None:
+        ln = local(tag)
+        ok = len(ln) > 4 and ln.startswith("lod") and ln[3].isdigit() and ln[4:] in _GEOM_SUFFIXES
+        lod = int(ln[3]) if ok else -1
+        if len(_PROP_LOD) < 4096:
+            _PROP_LOD[tag] = lod
+    return lod
 
 
 def _is_gml(tag: str) -> bool:
@@ -232,15 +252,26 @@ class _BuildingReader:
                 self.scope.ids.add(gid)
         ctx = (cls, sid, lod, in_solid, coll, sign)
         for ch in el:
-            if isinstance(ch.tag, str):
+            tag = ch.tag
+            if tag in _MEMBER_TAGS:  # fast path: surfaceMember -> href or Polygon
+                href = ch.get(XLINK_HREF)
+                if href is not None:
+                    self.scope.refs.append((ref_id(href), in_solid, ch.sourceline))
+                    continue
+                for g in ch:
+                    if g.tag in _POLYGON_TAGS and g.get("srsName") is None and g.get("srsDimension") is None:
+                        self._polygon(g, d, ctx, dim)
+                    elif isinstance(g.tag, str):
+                        self._geometry(g, d, ctx, dim)
+            elif isinstance(tag, str):
                 self._geometry(ch, d, ctx, dim)
 
     def _geom_property(self, el: etree._Element, d: _Draft, cls: str, sid: str | None) -> bool:
         """Handle a `lodX<Geometry>` property; False when `el` is not one."""
-        ln = local(el.tag)
-        if not (len(ln) > 4 and ln.startswith("lod") and ln[3].isdigit() and ln[4:] in _GEOM_SUFFIXES):
+        lod = _prop_lod(el.tag)
+        if lod < 0:
             return False
-        self._geometry(el, d, (cls, sid, int(ln[3]), False, None, 1), 3)
+        self._geometry(el, d, (cls, sid, lod, False, None, 1), 3)
         return True
 
     def _boundary(self, prop: etree._Element, d: _Draft) -> None:

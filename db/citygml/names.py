@@ -138,6 +138,8 @@ def get_id(el: object, id_attr: str) -> str | None:
     value = el.get(id_attr)  # type: ignore[attr-defined]
     if not value:
         return None
+    if _NCNAME.match(value):
+        return value
     return to_ncname(value.strip())
 
 
@@ -149,11 +151,21 @@ def ref_id(uri: str | None) -> str:
     return uri
 
 
+_LOCAL: dict[object, str] = {}
+
+
 def local(tag: object) -> str:
     """Local name of a Clark-notation tag (`'{ns}Name'` -> `'Name'`); '' for comments/PIs."""
+    try:
+        return _LOCAL[tag]
+    except (KeyError, TypeError):
+        pass
     if not isinstance(tag, str):
         return ""
-    return tag[tag.rfind("}") + 1 :]
+    name = tag[tag.rfind("}") + 1 :]
+    if len(_LOCAL) < 4096:
+        _LOCAL[tag] = name
+    return name
 
 
 def namespace(tag: object) -> str:

@@ -151,7 +151,7 @@ class _Stream:
         with open(self.path, "rb") as f:
             it = etree.iterparse(
                 f,
-                events=("start", "end"),
+                events=("end",),
                 tag=_TAGS,
                 resolve_entities=False,
                 no_network=True,
@@ -162,7 +162,7 @@ class _Stream:
                 remove_pis=True,
             )
             first = True
-            for event, el in it:
+            for _event, el in it:
                 if first:
                     first = False
                     r = el.getroottree().getroot()
@@ -177,11 +177,6 @@ class _Stream:
                     root = r
                     version = CORE_VERSIONS[namespace(r.tag)]
                     id_attr = gml_id_attr(version)
-                if event == "start":
-                    if el.tag in CITY_OBJECT_MEMBER_TAGS and header is None:
-                        header = ModelHeader(version, srs, envelope, name, tuple(pending))
-                        pending.clear()
-                    continue
                 tag = el.tag
                 parent = el.getparent()
                 if tag in BUILDING_TAGS:
