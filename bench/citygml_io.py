@@ -139,7 +139,14 @@ def _phase_write(path: Path, out: Path) -> dict:
             yield b
 
     t0 = time.perf_counter()
-    write_citygml(out, timed(), srs_name=header.srs_name, envelope=header.envelope, model_appearances=late)
+    write_citygml(
+        out,
+        timed(),
+        srs_name=header.srs_name,
+        envelope=header.envelope,
+        model_appearances=header.appearances,
+        trailing_appearances=late,
+    )
     total = time.perf_counter() - t0
     dt = total - read_time
     mb = out.stat().st_size / 1e6

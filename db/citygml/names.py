@@ -53,7 +53,10 @@ BUILDING_PART_TAGS: frozenset[str] = frozenset(f"{{{bldg_ns(v)}}}BuildingPart" f
 APPEARANCE_MEMBER_TAGS: frozenset[str] = frozenset(
     f"{{{core_ns(v)}}}appearanceMember" for v in VERSIONS
 ) | frozenset(f"{{{app_ns(v)}}}appearanceMember" for v in VERSIONS)
-CITY_OBJECT_MEMBER_TAGS: frozenset[str] = frozenset(f"{{{core_ns(v)}}}cityObjectMember" for v in VERSIONS)
+#: Members of a CityModel that hold city objects (`gml:featureMember` in some older files).
+CITY_OBJECT_MEMBER_TAGS: frozenset[str] = frozenset(
+    f"{{{core_ns(v)}}}cityObjectMember" for v in VERSIONS
+) | frozenset({f"{{{GML_NS}}}featureMember", f"{{{GML32_NS}}}featureMember"})
 ENVELOPE_TAGS: frozenset[str] = frozenset({f"{{{GML_NS}}}Envelope", f"{{{GML32_NS}}}Envelope"})
 
 #: Boundary surface element local names -> semantic class (`citymodel.SURFACE_CLASSES`).

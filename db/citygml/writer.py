@@ -288,8 +288,9 @@ def write_citygml(
     srs_name: str | None,
     extra_appearances: Mapping[str, Sequence[Appearance]] | None = None,
     envelope: tuple[np.ndarray, np.ndarray] | None = None,
-    model_appearances: Iterable[Appearance] = (),
+    model_appearances: Sequence[Appearance] = (),
     name: str | None = None,
+    trailing_appearances: Iterable[Appearance] = (),
 ) -> int:
     """Write buildings as a CityGML 2.0 file, streamed; returns the number of buildings written.
 
@@ -302,10 +303,13 @@ def write_citygml(
             of the building or building part they are written into (normally the top-level one).
         envelope: `(lower (3,), upper (3,))` for the CityModel's `gml:boundedBy`, optional.
         model_appearances: CityModel-level appearances (`app:appearanceMember`), e.g.
-            `ModelHeader.appearances` of the input; iterated after the buildings (written at the
-            end of the model), so a list still being filled while `buildings` is consumed works
-            (`reader.open_model`).
+            `ModelHeader.appearances` of the input, written before the buildings (so buildings'
+            appearances may share their surface data by `xlink:href`).
         name: `gml:name` of the CityModel.
+        trailing_appearances: CityModel-level appearances written after the buildings, iterated
+            only once the buildings are written: the `late_appearances` list of
+            `reader.open_model`, filled while `buildings` is consumed. Surface data they share
+            with a building's appearance are written there and referenced by `xlink:href`.
     """
     extra = extra_appearances or {}
     sdw = SurfaceDataWriter()
@@ -328,12 +332,16 @@ def write_citygml(
                 _sub(env, _G + "lowerCorner", fmt(lo.tolist()))
                 _sub(env, _G + "upperCorner", fmt(hi.tolist()))
                 xf.write(bb, pretty_print=True)
+            for app in model_appearances:
+                member = etree.Element(f"{{{APP}}}appearanceMember", nsmap=NSMAP)
+                sdw.appearance_element(member, app)
+                xf.write(member, pretty_print=True)
             for b in buildings:
                 member = etree.Element(f"{{{CORE}}}cityObjectMember", nsmap=NSMAP)
                 member.append(_BuildingWriter(srs_name, extra, sdw).building(b, srs_name))
                 xf.write(member, pretty_print=True)
                 n += 1
-            for app in model_appearances:
+            for app in trailing_appearances:
                 member = etree.Element(f"{{{APP}}}appearanceMember", nsmap=NSMAP)
                 sdw.appearance_element(member, app)
                 xf.write(member, pretty_print=True)

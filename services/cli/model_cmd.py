@@ -108,8 +108,9 @@ def convert(
             buildings,
             srs_name=header.srs_name,
             envelope=header.envelope,
-            model_appearances=_chain(header.appearances, late),
+            model_appearances=header.appearances,
             name=header.name,
+            trailing_appearances=late,
         )
     except CityGMLError as exc:
         console.print(f"[red]error:[/red] {exc}")
@@ -122,12 +123,6 @@ def convert(
                 console.print(f"[red]invalid:[/red] {e}")
             raise typer.Exit(code=2)
         console.print("valid against the CityGML 2.0 schemas")
-
-
-def _chain(first: tuple, late: list) -> object:
-    """Appearances before the buildings, then those found after (read lazily)."""
-    yield from first
-    yield from late
 
 
 def register(root: typer.Typer) -> None:

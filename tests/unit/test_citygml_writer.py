@@ -170,3 +170,49 @@ def test_validator_reports_errors(tmp_path: Path) -> None:
     )
     errors = validate_citygml2(bad)
     assert errors and "noSuchThing" in errors[0] and errors[0].startswith("line ")
+
+
+def test_model_appearances_and_georeferenced_texture(tmp_path: Path) -> None:
+    """CityModel-level appearances (before the buildings), shared by href from a local one."""
+    model_app = (
+        '<app:appearanceMember><app:Appearance gml:id="A0"><app:theme>ortho</app:theme>'
+        '<app:surfaceDataMember><app:GeoreferencedTexture gml:id="GT1"><app:imageURI>ortho.tif</app:imageURI>'
+        "<app:preferWorldFile>false</app:preferWorldFile>"
+        "<app:referencePoint><gml:Point><gml:pos>10 20</gml:pos></gml:Point></app:referencePoint>"
+        "<app:orientation>0.1 0 0 -0.1</app:orientation><app:target>#P1</app:target>"
+        "</app:GeoreferencedTexture></app:surfaceDataMember>"
+        '<app:surfaceDataMember><app:X3DMaterial gml:id="M1"><app:diffuseColor>1 0 0</app:diffuseColor>'
+        "<app:isSmooth>true</app:isSmooth><app:target>#P1</app:target></app:X3DMaterial></app:surfaceDataMember>"
+        "</app:Appearance></app:appearanceMember>"
+    )
+    local = (
+        "<app:appearance><app:Appearance><app:theme>shared</app:theme>"
+        '<app:surfaceDataMember xlink:href="#M1"/></app:Appearance></app:appearance>'
+    )
+    body = model_app + building("B1", local, boundary("RoofSurface", "R1", polygon("P1", square(0, 0, 3))))
+    src = write_doc(tmp_path, body)
+    header, (b,) = read_model(src)
+    (app,) = header.appearances
+    gt, mat = app.surface_data
+    assert gt.reference_point == (10.0, 20.0) and gt.orientation == (0.1, 0.0, 0.0, -0.1)
+    assert gt.prefer_world_file is False and gt.targets == ("P1",)
+    assert b.appearances[0].surface_data[0] is mat and mat.is_smooth is True
+    out = tmp_path / "out.gml"
+    write_citygml(out, [b], srs_name=header.srs_name, model_appearances=header.appearances)
+    assert validate_citygml2(out) == []
+    header2, (b2,) = read_model(out)
+    (app2,) = header2.appearances
+    assert app2.theme == "ortho" and [s.id for s in app2.surface_data] == ["GT1", "M1"]
+    assert app2.surface_data[0].orientation == gt.orientation
+    # the model-level appearance is written first; the local one refers to its material by href
+    assert b2.appearances[0].surface_data[0].diffuse_color == (1.0, 0.0, 0.0)
+
+
+def test_feature_member_buildings(tmp_path: Path) -> None:
+    body = (
+        '<gml:featureMember><bldg:Building gml:id="FM1">'
+        + boundary("WallSurface", "W1", polygon("P1", square(0, 0, 0)))
+        + "</bldg:Building></gml:featureMember>"
+    )
+    _, buildings = read_model(write_doc(tmp_path, body))
+    assert [b.id for b in buildings] == ["FM1"]
