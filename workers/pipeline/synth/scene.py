@@ -135,27 +135,34 @@ def _scene_buildings(
 def _gcps(
     buildings: Sequence[Building], renderer: Renderer, poses: Sequence, n: int, sigma: float, seed: int
 ) -> GroundControl | None:
-    """Up to `n` GCPs at the cluster's building vertices, observed where visible (true poses)."""
+    """Up to `n` GCPs among the cluster's building vertices that some frame sees (true poses),
+    with their image observations (+ Gaussian pixel noise `sigma`) in every frame that sees them."""
     if n <= 0:
         return None
-    coords = [r.coords for b in buildings for p in b.iter_polygons() for r in p.rings]
-    pts = np.unique(np.round(np.concatenate(coords), 3), axis=0)
-    rng = rng_for(seed, "gcps")
-    pick = pts[rng.choice(len(pts), size=min(n, len(pts)), replace=False)]
     from workers.pipeline.raycast import RayCaster
 
+    coords = [r.coords for b in buildings for p in b.iter_polygons() for r in p.rings]
+    pts = np.unique(np.round(np.concatenate(coords), 3), axis=0)
     caster = RayCaster(renderer.mesh)
-    points = {f"G{i + 1}": (xyz, 0.01) for i, xyz in enumerate(pick)}
-    obs: list[tuple[int, str, np.ndarray]] = []
     cam = renderer.camera
+    seen = np.zeros((len(poses), len(pts)), bool)
+    uvs = np.zeros((len(poses), len(pts), 2))
     for k, pose in enumerate(poses):
-        uv, depth = pose.project(cam, pick)
+        uv, depth = pose.project(cam, pts)
         ok = (depth > 0) & cam.in_image(uv, margin=2.0)
-        if not np.any(ok):
-            continue
-        ok[ok] = caster.visible(pick[ok], pose.center, tolerance_m=0.1)
-        for i in np.flatnonzero(ok):
-            obs.append((k, f"G{i + 1}", uv[i] + sigma * rng.standard_normal(2)))
+        if np.any(ok):
+            ok[ok] = caster.visible(pts[ok], pose.center, tolerance_m=0.1)
+        seen[k], uvs[k] = ok, uv
+    rng = rng_for(seed, "gcps")
+    cand = np.flatnonzero(seen.any(axis=0))
+    pick = np.sort(rng.choice(cand, size=min(n, len(cand)), replace=False)) if len(cand) else cand
+    points = {f"G{j + 1}": (pts[i], 0.01) for j, i in enumerate(pick)}
+    obs = [
+        (k, f"G{j + 1}", uvs[k, i] + sigma * rng.standard_normal(2))
+        for k in range(len(poses))
+        for j, i in enumerate(pick)
+        if seen[k, i]
+    ]
     return GroundControl(points=points, observations=tuple(obs))
 
 
