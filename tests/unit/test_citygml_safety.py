@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from db.citygml import CityGMLError, iter_buildings, read_header, read_model
@@ -84,3 +85,20 @@ def test_is_a_value_error(tmp_path: Path) -> None:
     assert issubclass(CityGMLError, ValueError)
     ok = write_doc(tmp_path, building("B1", boundary("RoofSurface", "R1", polygon("P1", square(0, 0, 1)))))
     assert len(read_model(ok)[1]) == 1
+
+
+@pytest.mark.slow
+def test_huge_text_node_needs_huge_tree(tmp_path: Path) -> None:
+    """libxml2's 10 MB text-node limit stays on by default; `huge_tree=True` lifts it."""
+    n = 400_000
+    t = np.linspace(0.0, 2.0 * np.pi, n)
+    pts = np.column_stack([10.0 * np.cos(t), 10.0 * np.sin(t), np.zeros(n)])
+    pts[-1] = pts[0]
+    poslist = " ".join(f"{v:.7f}" for v in pts.ravel())
+    assert len(poslist) > 10_000_000
+    path = write_doc(tmp_path, building("B1", boundary("RoofSurface", "R1", polygon("P1", poslist))))
+    with pytest.raises(CityGMLError, match="huge_tree=True") as err:
+        read_model(path)
+    assert err.value.line == 4
+    (b,) = read_model(path, huge_tree=True)[1]
+    np.testing.assert_allclose(b.polygons[0].exterior.coords, pts, atol=1e-7)
