@@ -12,6 +12,7 @@ document and referenced with `xlink:href` afterwards (`SurfaceDataWriter.written
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 
 import numpy as np
@@ -32,9 +33,22 @@ _TEXTURE_TYPES = frozenset({"specific", "typical", "unknown"})
 _WRAP_MODES = frozenset({"none", "wrap", "mirror", "clamp", "border"})
 
 
+def xsd_double(value: float) -> str:
+    """A float as XML Schema `double` text: shortest round-trip decimal, `NaN`, `INF`, `-INF`."""
+    if math.isfinite(value):
+        return repr(value)
+    if math.isnan(value):
+        return "NaN"
+    return "INF" if value > 0 else "-INF"
+
+
 def fmt(values: Iterable[float]) -> str:
-    """Numbers as shortest round-trip decimal text (`repr`), space separated."""
-    return " ".join(map(repr, values))
+    """Numbers as shortest round-trip decimal text (`repr`; `NaN`/`INF` spelled as XML Schema
+    does), space separated."""
+    vals = list(values)
+    if all(map(math.isfinite, vals)):
+        return " ".join(map(repr, vals))
+    return " ".join(map(xsd_double, vals))
 
 
 def _sub(parent: etree._Element, name: str, text: str | None = None, **attrib: str) -> etree._Element:
@@ -96,7 +110,7 @@ class SurfaceDataWriter:
             if not sd.is_front:
                 _sub(el, "isFront", "false")
             if sd.ambient_intensity is not None and _unit(sd.ambient_intensity):
-                _sub(el, "ambientIntensity", repr(float(sd.ambient_intensity)))
+                _sub(el, "ambientIntensity", xsd_double(float(sd.ambient_intensity)))
             for name, col in (
                 ("diffuseColor", sd.diffuse_color),
                 ("emissiveColor", sd.emissive_color),
@@ -106,7 +120,7 @@ class SurfaceDataWriter:
                     _sub(el, name, fmt(float(c) for c in col))
             for name, val in (("shininess", sd.shininess), ("transparency", sd.transparency)):
                 if val is not None and _unit(val):
-                    _sub(el, name, repr(float(val)))
+                    _sub(el, name, xsd_double(float(val)))
             if sd.is_smooth is not None:
                 _sub(el, "isSmooth", "true" if sd.is_smooth else "false")
             for t in sd.targets:

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from lxml import etree
 
-from db.citygml.appearance_write import SurfaceDataWriter, fmt
+from db.citygml.appearance_write import SurfaceDataWriter, fmt, xsd_double
 from db.citygml.names import (
     CORE_ATTRIBUTES,
     GML_NS,
@@ -170,7 +170,7 @@ class _BuildingWriter:
         elif isinstance(value, int):
             kind, text = "intAttribute", str(value)
         else:
-            kind, text = "doubleAttribute", repr(float(value))
+            kind, text = "doubleAttribute", xsd_double(float(value))
         el = etree.SubElement(parent, f"{{{GEN}}}{kind}", name=name)
         _sub(el, f"{{{GEN}}}value", text)
 
@@ -220,7 +220,7 @@ class _BuildingWriter:
             v = standard[k]
             for item in v if isinstance(v, tuple) else (v,):
                 if k == "measuredHeight":
-                    _sub(el, _B + k, repr(float(item))).set("uom", "m")
+                    _sub(el, _B + k, xsd_double(float(item))).set("uom", "m")
                 elif k.startswith("storeyHeights"):
                     _sub(el, _B + k, str(item)).set("uom", "m")
                 else:

@@ -216,3 +216,20 @@ def test_feature_member_buildings(tmp_path: Path) -> None:
     )
     _, buildings = read_model(write_doc(tmp_path, body))
     assert [b.id for b in buildings] == ["FM1"]
+
+
+def test_non_finite_numbers_stay_valid(tmp_path: Path) -> None:
+    from workers.pipeline.citymodel import Building, Polygon, Ring
+
+    ring = Ring("R1", np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0]], float))
+    b = Building(
+        id="B1",
+        polygons=(Polygon("P1", ring, surface_class="RoofSurface"),),
+        attributes={"measuredHeight": float("nan"), "ratio": float("inf"), "storeysAboveGround": -1},
+    )
+    out = tmp_path / "nan.gml"
+    write_citygml(out, [b], srs_name="EPSG:25832")
+    assert validate_citygml2(out) == []
+    (got,) = read_model(out)[1]
+    assert np.isnan(got.attributes["measuredHeight"]) and got.attributes["ratio"] == float("inf")
+    assert got.attributes["storeysAboveGround"] == -1  # invalid as standard: kept as generic int
