@@ -136,7 +136,8 @@ def _gcps(
     buildings: Sequence[Building], renderer: Renderer, poses: Sequence, n: int, sigma: float, seed: int
 ) -> GroundControl | None:
     """Up to `n` GCPs among the cluster's building vertices that some frame sees (true poses),
-    with their image observations (+ Gaussian pixel noise `sigma`) in every frame that sees them."""
+    with their image observations (+ Gaussian pixel noise `sigma`) in every frame that sees them;
+    None when no frame sees any."""
     if n <= 0:
         return None
     from workers.pipeline.raycast import RayCaster
@@ -155,6 +156,8 @@ def _gcps(
         seen[k], uvs[k] = ok, uv
     rng = rng_for(seed, "gcps")
     cand = np.flatnonzero(seen.any(axis=0))
+    if len(cand) == 0:
+        return None
     pick = np.sort(rng.choice(cand, size=min(n, len(cand)), replace=False)) if len(cand) else cand
     points = {f"G{j + 1}": (pts[i], 0.01) for j, i in enumerate(pick)}
     obs = [

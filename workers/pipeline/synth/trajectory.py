@@ -90,15 +90,15 @@ def ground_height(buildings: Sequence[Building]) -> float:
     return float(np.median([b.bounds()[0][2] for b in buildings]))
 
 
-def _loop_around(shape: shapely.Geometry, distance: float) -> shapely.Polygon:
-    """A single polygon whose outline is >= `distance` from `shape` (closing merges gaps)."""
-    for gap in (0.0, 5.0, 10.0, 20.0, 40.0, 80.0):
-        g = shape.buffer(distance + gap, quad_segs=16)
-        if gap:
-            g = g.buffer(-gap, quad_segs=16)
+def _loop_around(shape: shapely.Geometry, distance: float, min_radius: float = 6.0) -> shapely.Polygon:
+    """A single polygon whose outline is >= `distance` from `shape`: a closing (dilate by
+    `distance + gap`, erode by `gap`) that merges gaps and rounds concave corners to at least
+    `min_radius` (a car cannot turn on the spot); convex corners are arcs of radius `distance`."""
+    for gap in (min_radius, 10.0, 20.0, 40.0, 80.0):
+        g = shape.buffer(distance + gap, quad_segs=32).buffer(-gap, quad_segs=32)
         if isinstance(g, shapely.Polygon):
             return shapely.Polygon(g.exterior)
-    return shapely.Polygon(shape.convex_hull.buffer(distance, quad_segs=16).exterior)
+    return shapely.Polygon(shape.convex_hull.buffer(distance, quad_segs=32).exterior)
 
 
 def drive_loop(
@@ -192,8 +192,8 @@ class PathTrajectory:
         self.length = float(self.arc[-1])
         self.z, self.speed, self.t0 = float(z), float(speed_mps), float(t0)
         self.start = float(start_m) % self.length
-        # smoothed heading (grid north, clockwise) at the vertices, unwrapped, over ±1.5 m
-        k = max(1, round(1.5 / max(float(np.median(seg)), 1e-3)))
+        # smoothed heading (grid north, clockwise) at the vertices, unwrapped, over ±1 m
+        k = max(1, round(1.0 / max(float(np.median(seg)), 1e-3)))
         tang = np.roll(p, -k, axis=0) - np.roll(p, k, axis=0)
         hd = np.unwrap(np.arctan2(tang[:, 0], tang[:, 1]))
         self.heading = np.append(hd, hd[-1] + _wrap(hd[0] - hd[-1]))  # at the arc lengths `arc`
