@@ -13,10 +13,11 @@ Public API:
 from db.citygml.names import CityGMLError
 from db.citygml.reader import iter_buildings, open_model, read_header, read_model
 from db.citygml.validate import validate_citygml2
-from db.citygml.writer import write_citygml
+from db.citygml.writer import envelope_of, write_citygml
 
 __all__ = [
     "CityGMLError",
+    "envelope_of",
     "iter_buildings",
     "open_model",
     "read_header",

@@ -107,13 +107,28 @@ class PolygonCheck:
 
 
 def _distinct(coords: np.ndarray) -> int:
-    return len(np.unique(np.round(open_ring(coords), 9), axis=0)) if len(coords) else 0
+    """Number of distinct vertices of a ring (to 1e-9 m)."""
+    return len({tuple(v) for v in np.round(coords, 9).tolist()})
+
+
+def _distinct_ok(polygon: Polygon) -> bool:
+    """Every ring has at least 3 distinct vertices."""
+    return all(_distinct(r.coords) >= 3 for r in polygon.rings)
+
+
+_UNSET = object()
 
 
 def check_polygon(
-    polygon: Polygon, building_id: str = "", options: CheckOptions | None = None
+    polygon: Polygon,
+    building_id: str = "",
+    options: CheckOptions | None = None,
+    *,
+    plane: object = _UNSET,
 ) -> PolygonCheck:
-    """Check one polygon (the outward-normal test needs the building: see `check_building`)."""
+    """Check one polygon (the outward-normal test needs the building: see `check_building`).
+
+    `plane`: its `geometry.fit_plane` result when already computed."""
     opt = options or CheckOptions()
     rings = polygon.rings
     unclosed = tuple(
@@ -121,8 +136,9 @@ def check_polygon(
         for r in rings
         if len(r.coords) < 2 or float(np.linalg.norm(r.coords[0] - r.coords[-1])) > opt.closure_tolerance_m
     )
-    too_few = any(_distinct(r.coords) < 3 for r in rings)
-    plane = None if too_few else fit_plane(polygon)
+    too_few = not _distinct_ok(polygon)
+    if plane is _UNSET:
+        plane = None if too_few else fit_plane(polygon)
     selfx = False
     frame = None
     if plane is not None:
@@ -158,61 +174,84 @@ def check_polygon(
     )
 
 
-def _ray_crossings(origin: np.ndarray, direction: np.ndarray, tri: np.ndarray) -> int:
-    """Crossings of a ray with triangles `(T, 3, 3)` (Möller-Trumbore, t > 0)."""
-    e1 = tri[:, 1] - tri[:, 0]
-    e2 = tri[:, 2] - tri[:, 0]
-    p = np.cross(direction, e2)
-    det = np.einsum("ij,ij->i", e1, p)
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of broadcastable `(..., 3)` arrays (cheaper than `np.cross`)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def _ray_crossings(origins: np.ndarray, directions: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Crossings `(R,)` of rays (origins, unit directions `(R, 3)`) with triangles `(T, 3, 3)`
+    (Möller-Trumbore, hits at t > 0 counted)."""
+    v0 = tri[None, :, 0]
+    e1 = (tri[:, 1] - tri[:, 0])[None]
+    e2 = (tri[:, 2] - tri[:, 0])[None]
+    d = directions[:, None, :]
+    p = _cross(d, e2)
+    det = np.sum(e1 * p, axis=-1)
     ok = np.abs(det) > 1e-12
     inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    tv = origin - tri[:, 0]
-    u = np.einsum("ij,ij->i", tv, p) * inv
-    q = np.cross(tv, e1)
-    v = (q @ direction) * inv
-    t = np.einsum("ij,ij->i", e2, q) * inv
+    tv = origins[:, None, :] - v0
+    u = np.sum(tv * p, axis=-1) * inv
+    q = _cross(tv, e1)
+    v = np.sum(q * d, axis=-1) * inv
+    t = np.sum(e2 * q, axis=-1) * inv
     hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
-    return int(np.count_nonzero(hit))
+    return np.count_nonzero(hit, axis=1)
 
 
 #: Small fixed tilts of the outward ray (three votes; avoids rays grazing edges or faces).
 _TILTS = np.array([[0.013, 0.021, 0.017], [-0.019, 0.011, -0.023], [0.007, -0.029, 0.031]])
 
 
-def _triangles(polys: Iterable[Polygon], origin: np.ndarray) -> np.ndarray:
-    out = []
-    for p in polys:
-        verts, idx = triangulate(p)
+def _triangles(polys: list[Polygon], planes: list, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles `(T, 3, 3)` relative to `origin` and the index of their polygon `(T,)`."""
+    out, owner = [], []
+    for k, (p, plane) in enumerate(zip(polys, planes, strict=True)):
+        if plane is None:
+            continue
+        verts, idx = triangulate(p, plane)
         if len(idx):
             out.append((verts - origin)[idx])
-    return np.concatenate(out, axis=0) if out else np.zeros((0, 3, 3))
+            owner.append(np.full(len(idx), k))
+    if not out:
+        return np.zeros((0, 3, 3)), np.zeros(0, dtype=int)
+    return np.concatenate(out, axis=0), np.concatenate(owner)
 
 
-def _outward(b: Building, checks: list[PolygonCheck], opt: CheckOptions) -> list[PolygonCheck]:
-    solid = [p for p in b.polygons if p.in_solid]
-    hull = solid if len(solid) >= 4 else list(b.polygons)
-    if len(hull) < 4:
+def _outward(b: Building, checks: list[PolygonCheck], planes: list, opt: CheckOptions) -> list[PolygonCheck]:
+    polys = list(b.polygons)
+    solid = [p.in_solid for p in polys]
+    use = solid if sum(solid) >= 4 else [True] * len(polys)
+    if sum(use) < 4:
         return checks
-    origin = np.mean([p.exterior.coords[0] for p in hull], axis=0)
-    tri = _triangles(hull, origin)
-    if not len(tri):
+    origin = np.mean([p.exterior.coords[0] for p in polys], axis=0)
+    tri, owner = _triangles(polys, planes, origin)
+    hull = tri[np.asarray(use)[owner]] if len(tri) else tri
+    walls = [k for k, (p, c) in enumerate(zip(polys, checks, strict=True))
+             if p.surface_class == "WallSurface" and c.normal is not None and np.any(owner == k)]  # fmt: skip
+    if not len(hull) or not walls:
         return checks
-    out = []
-    for p, c in zip(b.polygons, checks, strict=True):
-        if p.surface_class != "WallSurface" or c.normal is None:
-            out.append(c)
-            continue
-        own = _triangles([p], origin)
-        if not len(own):
-            out.append(c)
-            continue
-        areas = np.linalg.norm(np.cross(own[:, 1] - own[:, 0], own[:, 2] - own[:, 0]), axis=1)
-        start = own[int(np.argmax(areas))].mean(axis=0) + opt.outward_offset_m * c.normal
-        votes = 0
-        for tilt in _TILTS:
-            d = c.normal + tilt
-            votes += _ray_crossings(start, d / np.linalg.norm(d), tri) % 2
-        out.append(PolygonCheck(**{**c.__dict__, "normal_outward": votes < 2}))
+    starts, dirs = [], []
+    for k in walls:
+        own = tri[owner == k]
+        areas = np.linalg.norm(_cross(own[:, 1] - own[:, 0], own[:, 2] - own[:, 0]), axis=1)
+        n = checks[k].normal
+        start = own[int(np.argmax(areas))].mean(axis=0) + opt.outward_offset_m * n
+        d = n[None, :] + _TILTS
+        starts.append(np.repeat(start[None], len(_TILTS), axis=0))
+        dirs.append(d / np.linalg.norm(d, axis=1, keepdims=True))
+    odd = _ray_crossings(np.concatenate(starts), np.concatenate(dirs), hull) % 2
+    votes = odd.reshape(len(walls), len(_TILTS)).sum(axis=1)
+    out = list(checks)
+    for k, v in zip(walls, votes, strict=True):
+        out[k] = PolygonCheck(**{**checks[k].__dict__, "normal_outward": bool(v < 2)})
     return out
 
 
@@ -221,8 +260,9 @@ def check_building(building: Building, options: CheckOptions | None = None) -> l
     opt = options or CheckOptions()
     out: list[PolygonCheck] = []
     for b in building.iter_buildings():
-        checks = [check_polygon(p, b.id, opt) for p in b.polygons]
-        out.extend(_outward(b, checks, opt))
+        planes = [fit_plane(p) if _distinct_ok(p) else None for p in b.polygons]
+        checks = [check_polygon(p, b.id, opt, plane=pl) for p, pl in zip(b.polygons, planes, strict=True)]
+        out.extend(_outward(b, checks, planes, opt))
     return out
 
 

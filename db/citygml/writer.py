@@ -47,7 +47,7 @@ from db.citygml.names import (
 )
 from workers.pipeline.citymodel import Appearance, Building, Polygon
 
-__all__ = ["NSMAP", "write_citygml"]
+__all__ = ["NSMAP", "envelope_of", "write_citygml"]
 
 CORE, BLDG, APP, GEN = core_ns("2.0"), bldg_ns("2.0"), app_ns("2.0"), gen_ns("2.0")
 NSMAP = {"core": CORE, "bldg": BLDG, "app": APP, "gen": GEN, "gml": GML_NS, "xlink": XLINK_NS}
@@ -279,6 +279,18 @@ class _BuildingWriter:
                     self._multisurface(etree.SubElement(surf, f"{_B}lod{lod}MultiSurface"), sel, srs)
         lod_block(3)
         lod_block(4)
+
+
+def envelope_of(buildings: Iterable[Building]) -> tuple[np.ndarray, np.ndarray] | None:
+    """3D bounds `(lower (3,), upper (3,))` of all polygons of the buildings (parts included), for
+    `write_citygml(envelope=...)`; None when there is no polygon."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for b in buildings:
+        if next(b.iter_polygons(), None) is None:
+            continue
+        blo, bhi = b.bounds()
+        lo, hi = np.minimum(lo, blo), np.maximum(hi, bhi)
+    return (lo, hi) if np.all(np.isfinite(lo)) else None
 
 
 def write_citygml(

@@ -233,3 +233,19 @@ def test_non_finite_numbers_stay_valid(tmp_path: Path) -> None:
     (got,) = read_model(out)[1]
     assert np.isnan(got.attributes["measuredHeight"]) and got.attributes["ratio"] == float("inf")
     assert got.attributes["storeysAboveGround"] == -1  # invalid as standard: kept as generic int
+
+
+def test_envelope_of(tmp_path: Path) -> None:
+    from db.citygml import envelope_of
+
+    _, buildings = read_model(DATA / "nrw-tile-5659-citygml1-lod2.gml")
+    lo, hi = envelope_of(buildings)
+    pts = np.concatenate([r.coords for b in buildings for p in b.iter_polygons() for r in p.rings])
+    np.testing.assert_array_equal(lo, pts.min(axis=0))
+    np.testing.assert_array_equal(hi, pts.max(axis=0))
+    assert envelope_of([]) is None
+    out = tmp_path / "env.gml"
+    write_citygml(out, buildings[:2], srs_name="EPSG:25832", envelope=envelope_of(buildings[:2]))
+    assert validate_citygml2(out) == []
+    header, _ = read_model(out)
+    np.testing.assert_array_equal(header.envelope[0], envelope_of(buildings[:2])[0])
