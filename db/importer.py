@@ -19,67 +19,39 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from functools import partial
 from os import PathLike
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from psycopg.types.json import Jsonb
 from sqlalchemy import Connection, Engine, text
 
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
 from db.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
 from db.errors import ModelExistsError
-from db.geomcodec import encode_envelope, encode_footprints, encode_polygons
-from db.ops import copy_rows, create_spatial_indexes, delete_model, drop_spatial_indexes, reserve_ids
+from db.geomcodec import encode_envelope
+from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
+from db.import_stream import BatchStream
+from db.ops import (
+    copy_block,
+    copy_rows,
+    create_spatial_indexes,
+    delete_model,
+    drop_spatial_indexes,
+    reserve_ids,
+)
 from db.session import as_engine
-from db.surface_checks import full_checks, jsonable, surface_checks
-from workers.pipeline.citymodel import Appearance, Building, ModelHeader, Polygon
+from workers.pipeline.citymodel import Appearance, ModelHeader
 
 __all__ = ["ImportOptions", "ImportSummary", "import_citygml", "model_srid"]
 
 log = logging.getLogger(__name__)
 
-BUILDING_COLUMNS = (
-    "id",
-    "city_model_id",
-    "gml_id",
-    "parent_id",
-    "root_id",
-    "is_part",
-    "ordinal",
-    "name",
-    "srs_name",
-    "generated_id",
-    "attributes",
-    "footprint",
-    "envelope",
-)
-SURFACE_COLUMNS = (
-    "id",
-    "city_model_id",
-    "building_id",
-    "ordinal",
-    "gml_id",
-    "generated_id",
-    "ring_ids",
-    "ring_generated",
-    "ring_closed",
-    "surface_class",
-    "surface_gml_id",
-    "lod",
-    "in_solid",
-    "collection_id",
-    "geometry",
-    "raw_rings",
-    "plane_normal",
-    "plane_offset",
-    "area_m2",
-    "checks",
-)
+BUILDING_COLUMNS = ("id", "city_model_id", "parent_id", "root_id", "ordinal", *BUILDING_TAIL)
+SURFACE_COLUMNS = ("id", "city_model_id", "building_id", *SURFACE_TAIL)
 
 
 @dataclass(frozen=True)
@@ -95,6 +67,8 @@ class ImportOptions:
             count, planarity, area, unclosed rings), "full" (`db.citygml.checks.check_building`,
             adding self-intersection and outward wall normals; about 20 ms per building) or "none".
         huge_tree: passed to the reader (lift libxml2 limits for unusual files).
+        parallel_read: parse the file in a forked reader process while this one writes (falls
+            back to reading in-process inside daemonic workers).
     """
 
     batch_size: int = 250
@@ -102,6 +76,7 @@ class ImportOptions:
     defer_above_bytes: int = 100 * 1024**2
     checks: str = "fast"
     huge_tree: bool = False
+    parallel_read: bool = True
 
 
 @dataclass(frozen=True)
@@ -118,6 +93,8 @@ class ImportSummary:
     appearances: int
     seconds: float
     replaced: bool
+    #: peak RSS of the reader process (MB) when the file was read in parallel.
+    reader_peak_rss_mb: float | None = None
 
 
 def model_srid(srs_name: str | None) -> int:
@@ -139,126 +116,32 @@ def _vertical(srs_name: str | None) -> int | None:
         return None
 
 
-class _Batch:
-    """Rows of one batch of top-level buildings, ready for COPY."""
-
-    def __init__(self, model_id: int, srid: int, ordinal0: int) -> None:
-        self.model_id = model_id
-        self.srid = srid
-        self.ordinal = ordinal0
-        self.buildings: list[tuple] = []
-        self.surfaces: list[tuple] = []
-        self.appearances = AppearanceRows()
-        self.n_buildings = 0
-        self.n_parts = 0
-
-
-def _batch_rows(
-    conn: Connection, tops: Sequence[Building], model_id: int, srid: int, ordinal0: int, checks: str
-) -> _Batch:
-    """Turn a batch of top-level buildings (parts nested) into COPY rows with reserved ids."""
-    flat: list[tuple[Building, Building, Building | None]] = []  # (building, root, parent)
-
-    def walk(b: Building, root: Building, parent: Building | None) -> None:
-        flat.append((b, root, parent))
-        for p in b.parts:
-            walk(p, root, b)
-
-    for t in tops:
-        walk(t, t, None)
-    polys: list[Polygon] = [p for b, _, _ in flat for p in b.polygons]
-    bids = reserve_ids(conn, "building", len(flat))
-    sids = reserve_ids(conn, "surface", len(polys))
-    row_of = {id(b): bid for (b, _, _), bid in zip(flat, bids, strict=True)}
-    enc = encode_polygons(polys, srid)
-    full = full_checks(tops) if checks == "full" else {}
-    normals = {p.id: enc.normal[k] for k, p in enumerate(polys)}
-    footprints = encode_footprints([b for b, _, _ in flat], normals, srid)
-    batch = _Batch(model_id, srid, ordinal0)
-    surface_row: dict[str, int] = {}
-    k = 0
-    for (b, root, parent), bid, fp in zip(flat, bids, footprints, strict=True):
-        lo, hi = b.bounds() if any(True for _ in b.iter_polygons()) else (None, None)
-        batch.buildings.append(
-            (
-                bid,
-                model_id,
-                b.id,
-                row_of[id(parent)] if parent is not None else None,
-                row_of[id(root)],
-                b.is_part,
-                batch.ordinal,
-                b.name,
-                b.srs_name,
-                b.generated_id,
-                Jsonb(jsonable(dict(b.attributes))),
-                fp,
-                encode_envelope(lo, hi, srid) if lo is not None else None,
-            )
-        )
-        batch.ordinal += 1
-        batch.n_parts += int(b.is_part)
-        batch.n_buildings += int(not b.is_part)
-        for j, p in enumerate(b.polygons):
-            sid = sids[k]
-            surface_row.setdefault(p.id, sid)
-            ewkb = enc.ewkb[k]
-            raw = None if ewkb is not None else Jsonb([r.coords.tolist() for r in p.rings])
-            n = enc.normal[k]
-            batch.surfaces.append(
-                (
-                    sid,
-                    model_id,
-                    bid,
-                    j,
-                    p.id,
-                    p.generated_id,
-                    [r.id for r in p.rings],
-                    [r.generated_id for r in p.rings],
-                    enc.ring_closed[k],
-                    p.surface_class,
-                    p.surface_id,
-                    p.lod,
-                    p.in_solid,
-                    p.collection_id,
-                    ewkb,
-                    raw,
-                    n.tolist() if np.all(np.isfinite(n)) else None,
-                    float(enc.offset[k]) if np.isfinite(enc.offset[k]) else None,
-                    float(enc.area[k]) if np.isfinite(enc.area[k]) else None,
-                    surface_checks(checks, full, enc, k, p, b.id),
-                )
-            )
-            k += 1
-    for b, _, _ in flat:
-        if b.appearances:
+def _write_lines(conn: Connection, lines: BatchLines, model_id: int, ordinal0: int) -> None:
+    """Reserve ids, link parents/roots/owners and COPY one batch; then its appearances."""
+    bids = reserve_ids(conn, "building", len(lines.building_tails))
+    sids = reserve_ids(conn, "surface", len(lines.surface_tails))
+    m = str(model_id)
+    null = "\\N"
+    b_lines = [
+        f"{bids[i]}\t{m}\t{bids[p] if p >= 0 else null}\t{bids[r]}\t{ordinal0 + i}\t{tail}\n"
+        for i, (p, r, tail) in enumerate(zip(lines.parent, lines.root, lines.building_tails, strict=True))
+    ]
+    copy_block(conn, "building", BUILDING_COLUMNS, b_lines)
+    s_lines = [
+        f"{sids[k]}\t{m}\t{bids[o]}\t{tail}\n"
+        for k, (o, tail) in enumerate(zip(lines.owner, lines.surface_tails, strict=True))
+    ]
+    copy_block(conn, "surface", SURFACE_COLUMNS, s_lines)
+    if lines.appearances:
+        surface_row: dict[str, int] = {}
+        for k, pid in enumerate(lines.polygon_ids):
+            surface_row.setdefault(pid, sids[k])
+        rows = AppearanceRows()
+        for i, apps in lines.appearances:
             collect_appearance_rows(
-                batch.appearances,
-                b.appearances,
-                model_id=model_id,
-                building_row=row_of[id(b)],
-                surface_row=surface_row,
+                rows, apps, model_id=model_id, building_row=bids[i], surface_row=surface_row
             )
-    return batch
-
-
-def _write_batch(conn: Connection, batch: _Batch) -> None:
-    copy_rows(conn, "building", BUILDING_COLUMNS, batch.buildings)
-    copy_rows(conn, "surface", SURFACE_COLUMNS, batch.surfaces)
-    batch.appearances.write(conn, copy_rows, reserve_ids)
-
-
-def _events(path: Path, huge_tree: bool) -> Iterator[tuple[str, Any]]:
-    """("building", Building) in document order, then ("appearance", Appearance) for
-    CityModel-level appearances that follow the buildings (when the reader reports them)."""
-    stream = getattr(citygml_reader, "_Stream", None)
-    if stream is None:  # pragma: no cover - reader without its event stream
-        for b in citygml_reader.iter_buildings(path, huge_tree=huge_tree):
-            yield "building", b
-        return
-    for kind, obj in stream(path, huge_tree).events():
-        if kind in ("building", "appearance"):
-            yield kind, obj
+        rows.write(conn, copy_rows, reserve_ids)
 
 
 def _start_model(
@@ -370,29 +253,25 @@ def import_citygml(
     try:
         if defer:
             drop_spatial_indexes(engine)
-        pending: list[Building] = []
-
-        def flush() -> None:
-            nonlocal ordinal
-            with engine.begin() as conn:
-                batch = _batch_rows(conn, pending, model_id, srid, ordinal, opts.checks)
-                _write_batch(conn, batch)
-            ordinal = batch.ordinal
-            counts["buildings"] += batch.n_buildings
-            counts["parts"] += batch.n_parts
-            counts["surfaces"] += len(batch.surfaces)
-            counts["appearances"] += batch.appearances.count
-            pending.clear()
-
-        for kind, obj in _events(path, opts.huge_tree):
+        stream = BatchStream(
+            path,
+            batch_size=opts.batch_size,
+            transform=partial(batch_lines, srid=srid, checks=opts.checks),
+            huge_tree=opts.huge_tree,
+            parallel=opts.parallel_read,
+        )
+        for kind, obj in stream:
             if kind == "appearance":
                 late.append(obj)
                 continue
-            pending.append(obj)
-            if len(pending) >= opts.batch_size:
-                flush()
-        if pending:
-            flush()
+            with engine.begin() as conn:
+                _write_lines(conn, obj, model_id, ordinal)
+            ordinal += len(obj.building_tails)
+            n_parts = sum(obj.is_part)
+            counts["buildings"] += len(obj.is_part) - n_parts
+            counts["parts"] += n_parts
+            counts["surfaces"] += len(obj.surface_tails)
+            counts["appearances"] += sum(len(a) for _, a in obj.appearances)
         counts["appearances"] += len(late)
         with engine.begin() as conn:
             _finish_model(conn, model_id, counts, late)
@@ -403,9 +282,6 @@ def import_citygml(
     finally:
         if defer:
             create_spatial_indexes(engine)
-    with engine.begin() as conn:
-        for table in ("building", "surface"):
-            conn.exec_driver_sql(f"ANALYZE {table}")
     return ImportSummary(
         model_id=model_id,
         name=name,
@@ -417,4 +293,5 @@ def import_citygml(
         appearances=counts["appearances"],
         seconds=time.perf_counter() - t0,
         replaced=replaced,
+        reader_peak_rss_mb=stream.peak_rss_mb,
     )

@@ -1,18 +1,18 @@
 """Geometry checks of surfaces as stored in `surface.checks` (jsonb).
 
 In: a batch's `EncodedPolygons` (vectorised planes) or the reader family's `check_building`.
-Out: JSON per polygon: `level` ("fast" or "full"), `vertices`, `planarity_m`, `area_m2`,
+Out: JSON text per polygon: `level` ("fast" or "full"), `vertices`, `planarity_m`, `area_m2`,
 `unclosed_rings`, `problems` (names as in `db.citygml.checks.PolygonCheck.problems`), and for
 "full" also `normal_outward`.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from psycopg.types.json import Jsonb
 
 from db.citygml.checks import CheckOptions
 from db.geomcodec import EncodedPolygons
@@ -21,16 +21,20 @@ from workers.pipeline.citymodel import Building, Polygon
 __all__ = ["fast_checks", "full_checks", "jsonable", "surface_checks"]
 
 
-def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], Any]:
+def _num(v: float) -> str:
+    return repr(float(v)) if np.isfinite(v) else "null"
+
+
+def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
     """The reader family's full per-polygon checks (`db.citygml.checks.check_building`: plane,
     planarity, area, vertices, self-intersection, unclosed rings, outward wall normals), keyed by
-    (building id, polygon id), as JSON."""
+    (building id, polygon id), as JSON text."""
     from db.citygml.checks import check_building
 
-    out: dict[tuple[str, str], Any] = {}
+    out: dict[tuple[str, str], str] = {}
     for t in tops:
         for c in check_building(t):
-            out[(c.building_id, c.polygon_id)] = Jsonb(
+            out[(c.building_id, c.polygon_id)] = json.dumps(
                 jsonable(
                     {
                         "level": "full",
@@ -46,37 +50,39 @@ def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], Any]:
     return out
 
 
-def fast_checks(enc: EncodedPolygons, k: int, polygon: Polygon) -> Jsonb:
-    """Vectorised checks from the batch encoding: vertices, planarity, area, unclosed rings (the
-    same tolerances as `db.citygml.checks.CheckOptions`; no self-intersection or outward test)."""
+def fast_checks(enc: EncodedPolygons, polygons: Sequence[Polygon]) -> list[str]:
+    """Vectorised checks from the batch encoding, JSON text per polygon: vertices, planarity,
+    area, unclosed rings (the tolerances of `db.citygml.checks.CheckOptions`; no self-intersection
+    or outward test)."""
     opt = CheckOptions()
-    planarity = float(enc.planarity[k])
-    area = float(enc.area[k])
-    unclosed = [r.id for r, c in zip(polygon.rings, enc.ring_closed[k], strict=True) if not c]
-    problems = []
-    if enc.min_vertices[k] < 3:
-        problems.append("too_few_vertices")
-    if not np.isfinite(area) or area < opt.min_area_m2:
-        problems.append("zero_area")
-    if np.isfinite(planarity) and planarity > opt.planarity_tolerance_m:
-        problems.append("non_planar")
-    if unclosed:
-        problems.append("unclosed_ring")
-    return Jsonb(
-        jsonable(
-            {
-                "level": "fast",
-                "vertices": int(enc.min_vertices[k]),
-                "planarity_m": planarity,
-                "area_m2": area,
-                "unclosed_rings": unclosed,
-                "problems": problems,
-            }
+    with np.errstate(invalid="ignore"):
+        few = enc.min_vertices < 3
+        zero = ~np.isfinite(enc.area) | (enc.area < opt.min_area_m2)
+        nonplanar = np.isfinite(enc.planarity) & (enc.planarity > opt.planarity_tolerance_m)
+    out = []
+    for k, p in enumerate(polygons):
+        problems = []
+        if few[k]:
+            problems.append('"too_few_vertices"')
+        if zero[k]:
+            problems.append('"zero_area"')
+        if nonplanar[k]:
+            problems.append('"non_planar"')
+        closed = enc.ring_closed[k]
+        unclosed = "[]"
+        if not all(closed):
+            unclosed = json.dumps([r.id for r, c in zip(p.rings, closed, strict=True) if not c])
+            problems.append('"unclosed_ring"')
+        out.append(
+            f'{{"level": "fast", "vertices": {int(enc.min_vertices[k])}, '
+            f'"planarity_m": {_num(enc.planarity[k])}, "area_m2": {_num(enc.area[k])}, '
+            f'"unclosed_rings": {unclosed}, "problems": [{", ".join(problems)}]}}'
         )
-    )
+    return out
 
 
 def jsonable(v: Any) -> Any:
+    """A JSON-safe copy: numpy values to Python, NaN/inf to None."""
     if isinstance(v, dict):
         return {str(k): jsonable(x) for k, x in v.items()}
     if isinstance(v, list | tuple):
@@ -84,17 +90,24 @@ def jsonable(v: Any) -> Any:
     if isinstance(v, np.ndarray):
         return jsonable(v.tolist())
     if isinstance(v, np.generic):
-        return v.item()
+        return jsonable(v.item())
     if isinstance(v, float) and not np.isfinite(v):
         return None
     return v
 
 
 def surface_checks(
-    mode: str, full: dict[tuple[str, str], Any], enc: EncodedPolygons, k: int, p: Polygon, bid: str
-) -> Jsonb | None:
-    if mode == "full":
-        return full.get((bid, p.id))
+    mode: str,
+    enc: EncodedPolygons,
+    polygons: Sequence[Polygon],
+    owners: Sequence[str],
+    tops: Sequence[Building],
+) -> list[str | None]:
+    """JSON text of the checks of each polygon of a batch (`owners[k]`: id of the building or part
+    owning polygon k), for `mode` "fast", "full" or "none"."""
     if mode == "fast":
-        return fast_checks(enc, k, p)
-    return None
+        return list(fast_checks(enc, polygons))
+    if mode == "full":
+        full = full_checks(tops)
+        return [full.get((b, p.id)) for b, p in zip(owners, polygons, strict=True)]
+    return [None] * len(polygons)

@@ -178,16 +178,16 @@ def test_reimport_refused_unless_replace_and_full_checks(db_engine) -> None:
 
 def test_failed_import_leaves_nothing(db_engine, monkeypatch) -> None:
     path = DATA / "berlin-61-buildings-citygml1-lod2.gml"
-    real = importer_mod._write_batch
+    real = importer_mod._write_lines
     calls = {"n": 0}
 
-    def failing(conn, batch):
+    def failing(conn, lines, model_id, ordinal0):
         calls["n"] += 1
-        real(conn, batch)
+        real(conn, lines, model_id, ordinal0)
         if calls["n"] == 2:
             raise RuntimeError("disk full (simulated)")
 
-    monkeypatch.setattr(importer_mod, "_write_batch", failing)
+    monkeypatch.setattr(importer_mod, "_write_lines", failing)
     before = _scalar(db_engine, "SELECT count(*) FROM building")
     with pytest.raises(RuntimeError, match="simulated"):
         import_citygml(db_engine, path, name="fails", options=ImportOptions(batch_size=20))

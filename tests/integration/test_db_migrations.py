@@ -14,11 +14,11 @@ from geoalchemy2 import Geometry
 from db.migrations import current_revision, downgrade, head_revision, upgrade
 from db.models import Base
 from db.session import make_engine
-from tests.integration.conftest import PG_SERVER
+from tests.integration.conftest import PG_SERVER, TEST_DB
 
 pytestmark = pytest.mark.integration
 
-MIG_DB = "citytherm_test_migrations"
+MIG_DB = f"{TEST_DB}_migrations"
 TABLES = {
     "city_model", "building", "surface", "sequence", "frame", "job", "job_unit", "frame_pose", "appearance",
     "surface_data", "tex_image", "texture_param", "surface_thermal", "thermal_anomaly",
