@@ -57,6 +57,10 @@ _TAGS = sorted(
     | ENVELOPE_TAGS
     | _NAME_TAGS
 )
+#: Elements whose building children are top-level buildings.
+_BUILDING_PARENTS = CITY_OBJECT_MEMBER_TAGS | frozenset(
+    {f"{{{GML_NS}}}featureMembers", f"{{{GML32_NS}}}featureMembers"}
+)
 _PROLOG_LIMIT = 1 << 20
 _DOCTYPE = re.compile(rb"<!DOCTYPE|<\x00!\x00D\x00O\x00C\x00T\x00Y\x00P\x00E")
 
@@ -180,7 +184,7 @@ class _Stream:
                 tag = el.tag
                 parent = el.getparent()
                 if tag in BUILDING_TAGS:
-                    if parent is None or parent.tag not in CITY_OBJECT_MEMBER_TAGS:
+                    if parent is None or parent.tag not in _BUILDING_PARENTS:
                         continue  # nested (e.g. in a CityObjectGroup): not a top-level building
                     n_buildings += 1
                     b = read_building(
@@ -190,6 +194,9 @@ class _Stream:
                         default_srs=srs,
                         surface_registry=self.surface_data,
                     )
+                    el.clear()
+                    while el.getprevious() is not None:  # several buildings in one gml:featureMembers
+                        del parent[0]
                     if n_buildings == 1:
                         if header is None:
                             header = ModelHeader(version, srs, envelope, name, tuple(pending))

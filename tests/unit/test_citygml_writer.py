@@ -214,8 +214,12 @@ def test_feature_member_buildings(tmp_path: Path) -> None:
         + boundary("WallSurface", "W1", polygon("P1", square(0, 0, 0)))
         + "</bldg:Building></gml:featureMember>"
     )
-    _, buildings = read_model(write_doc(tmp_path, body))
-    assert [b.id for b in buildings] == ["FM1"]
+    inner = [boundary("WallSurface", f"WS{k}", polygon(f"PS{k}", square(0, 0, 0))) for k in range(3)]
+    many = "".join(f'<bldg:Building gml:id="FMS{k}">{x}</bldg:Building>' for k, x in enumerate(inner))
+    many = f"<gml:featureMembers>{many}</gml:featureMembers>"
+    _, buildings = read_model(write_doc(tmp_path, body + many))
+    assert [b.id for b in buildings] == ["FM1", "FMS0", "FMS1", "FMS2"]
+    assert [p.id for b in buildings for p in b.polygons] == ["P1", "PS0", "PS1", "PS2"]
 
 
 def test_non_finite_numbers_stay_valid(tmp_path: Path) -> None:
