@@ -12,8 +12,9 @@ count means the normal points into the building. The surfaces used are the build
 (`in_solid` polygons) where it has one, else all its polygons; each building part is tested
 against its own surfaces. The ray starts just outside the centre of the polygon's largest
 triangle; three slightly different directions vote. Result `None` when the building has too
-few surfaces to enclose a volume. A wall modelled twice between two sections of one building
-(a party wall, once per section) is reported inward on the side that faces the other section.
+few surfaces to enclose a volume, and for a wall modelled twice between two sections of one
+building (a party wall, once per section, the copies facing opposite ways), which faces the
+inside of one section or the other whatever its orientation.
 """
 
 from __future__ import annotations
@@ -186,9 +187,11 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def _ray_crossings(origins: np.ndarray, directions: np.ndarray, tri: np.ndarray) -> np.ndarray:
+def _ray_crossings(
+    origins: np.ndarray, directions: np.ndarray, tri: np.ndarray, t_max: float = np.inf
+) -> np.ndarray:
     """Crossings `(R,)` of rays (origins, unit directions `(R, 3)`) with triangles `(T, 3, 3)`
-    (Möller-Trumbore, hits at t > 0 counted)."""
+    (Möller-Trumbore, hits at 0 < t < t_max counted)."""
     v0 = tri[None, :, 0]
     e1 = (tri[:, 1] - tri[:, 0])[None]
     e2 = (tri[:, 2] - tri[:, 0])[None]
@@ -202,7 +205,7 @@ def _ray_crossings(origins: np.ndarray, directions: np.ndarray, tri: np.ndarray)
     q = _cross(tv, e1)
     v = np.sum(q * d, axis=-1) * inv
     t = np.sum(e2 * q, axis=-1) * inv
-    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9) & (t < t_max)
     return np.count_nonzero(hit, axis=1)
 
 
@@ -247,11 +250,16 @@ def _outward(b: Building, checks: list[PolygonCheck], planes: list, opt: CheckOp
         d = n[None, :] + _TILTS
         starts.append(np.repeat(start[None], len(_TILTS), axis=0))
         dirs.append(d / np.linalg.norm(d, axis=1, keepdims=True))
-    odd = _ray_crossings(np.concatenate(starts), np.concatenate(dirs), hull) % 2
+    o, d = np.concatenate(starts), np.concatenate(dirs)
+    odd = _ray_crossings(o, d, hull) % 2
     votes = odd.reshape(len(walls), len(_TILTS)).sum(axis=1)
+    # a wall modelled twice (party wall between two sections, the other copy facing the other
+    # way): a short ray back through the wall crosses both copies; its side cannot be judged
+    back = _ray_crossings(o, -d, tri, t_max=3.0 * opt.outward_offset_m)
+    shared = back.reshape(len(walls), len(_TILTS)).min(axis=1) >= 2
     out = list(checks)
-    for k, v in zip(walls, votes, strict=True):
-        out[k] = PolygonCheck(**{**checks[k].__dict__, "normal_outward": bool(v < 2)})
+    for k, v, sh in zip(walls, votes, shared, strict=True):
+        out[k] = PolygonCheck(**{**checks[k].__dict__, "normal_outward": None if sh else bool(v < 2)})
     return out
 
 

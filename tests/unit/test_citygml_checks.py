@@ -100,3 +100,19 @@ def test_real_sample_walls_outward() -> None:
     walls = [c for c in checks if c.surface_class == "WallSurface"]
     assert len(walls) == 63 and all(c.normal_outward for c in walls)
     assert all(c.ok for c in checks)
+
+
+def test_party_wall_modelled_twice_not_judged() -> None:
+    """Two boxes side by side in one building: the shared wall appears once per box, facing
+    opposite ways; neither copy can be judged, every other wall is outward (one flipped: found)."""
+    a = _prism([(0, 0), (4, 0), (4, 4), (0, 4)], 5.0)
+    b = _prism([(4, 0), (8, 0), (8, 4), (4, 4)], 5.0, flip={2})
+    rename = [
+        Polygon(f"b_{p.id}", p.exterior, surface_class=p.surface_class, in_solid=True) for p in b.polygons
+    ]
+    both = Building(id="AB", polygons=a.polygons + tuple(rename))
+    result = {c.polygon_id: c.normal_outward for c in check_building(both)}
+    assert result["w1"] is None and result["b_w3"] is None  # x = 4: the party wall, twice
+    assert result["b_w2"] is False  # flipped outer wall
+    assert all(v is True for k, v in result.items() if k.startswith(("w", "b_w")) and k not in
+               ("w1", "b_w3", "b_w2"))  # fmt: skip
