@@ -160,21 +160,25 @@ class Renderer:
             label = self._tri_label[np.minimum(prim, len(self._tri_label) - 1)]
         else:
             t = np.full(n, np.inf, f32)
-        dz = np.ascontiguousarray(d[:, 2])
+        dx, dy, dz = (np.ascontiguousarray(c) for c in d.T)
         with np.errstate(divide="ignore", invalid="ignore"):
             tg = f32(self.ground_z - C[2]) / dz
         ground = (dz < 0) & (tg > 0) & (tg < t)
         t = np.where(ground, tg, t)
         label[ground] = GROUND
         T = np.empty(n, f32)
-        c_local = (C - self.thermal.origin).astype(f32)
-        on_mesh = np.flatnonzero(label >= 0)
-        if len(on_mesh):
-            X = c_local + t[on_mesh, None] * d[on_mesh]
-            T[on_mesh] = self.thermal.temperature_local(X, label[on_mesh])
+        cx, cy, cz = (C - self.thermal.origin).astype(f32)
+        on = np.flatnonzero(label >= 0)
+        if len(on):
+            ton = t[on]
+            x, y, z = cx + ton * dx[on], cy + ton * dy[on], cz + ton * dz[on]
+            T[on] = self.thermal.temperature_xyz(x, y, z, label[on])
         ig = np.flatnonzero(ground)
         if len(ig):
-            T[ig] = self.thermal.ground_temperature_local(c_local + t[ig, None] * d[ig])
+            tgr = t[ig]
+            T[ig] = self.thermal.ground_temperature_local(
+                np.stack([cx + tgr * dx[ig], cy + tgr * dy[ig], cz + tgr * dz[ig]], axis=-1)
+            )
         sky = np.flatnonzero(label == SKY)
         if len(sky):
             T[sky] = self.thermal.sky_temperature(d[sky])

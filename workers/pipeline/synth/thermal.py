@@ -297,42 +297,48 @@ class ThermalScene:
         self.g_phase = rng.uniform(0, 2 * np.pi, size=n)
 
     def _finalize(self) -> None:
-        """A float32 per-polygon parameter table in a local frame (`origin`) for fast evaluation.
-
-        Rows of `_tab` `(K, P)` (one gather per evaluation, then contiguous vector maths).
-        """
+        """Per-polygon parameter tables in a local frame (`origin`) for fast evaluation: float32
+        rows `_tab` `(K, P)` (one gather per evaluation, then contiguous vector maths; integers
+        below 2²⁴ are exact in float32); leak parameters `_leak` `(5, P)` (gathered where needed)."""
         lo = self.b_ground if len(self.b_ground) else np.zeros(1)
         xy = self.p_origin[:, :2] if len(self.p_origin) else np.zeros((1, 2))
         self.origin = np.floor(np.array([xy[:, 0].min(), xy[:, 1].min(), lo.min()]))  # (3,) world
         po = self.p_origin - self.origin
         b = self.p_building
-        n_sin = self.b_wave.shape[1]
+        wall = self.p_class == WALL
+        # v: height above the building's base on walls, the t coordinate elsewhere
+        v_axis = np.where(wall[:, None], np.array([0.0, 0.0, 1.0]), self.p_t)
+        v_off = np.where(wall, self.b_ground[b] - self.origin[2], np.einsum("ij,ij->i", po, self.p_t))
+        wave = 2 * np.pi * self.b_wave[b]  # (P, n, 2)
         rows: list[np.ndarray] = [
             *self.p_s.T,
             np.einsum("ij,ij->i", po, self.p_s),
-            *self.p_t.T,
-            np.einsum("ij,ij->i", po, self.p_t),
+            *v_axis.T,
+            v_off,
             self.p_base,
-            self.b_ground[b] - self.origin[2],
-            (self.p_class == WALL).astype(np.float64),
-            *(2 * np.pi * self.b_wave[b].reshape(len(b), -1).T),
-            *self.b_phase[b].T,
+        ]
+        for j in range(self.b_wave.shape[1]):
+            rows += [wave[:, j, 0], wave[:, j, 1], self.b_phase[b, j]]
+        rows += [
             self.b_storey[b],
             self.b_spacing[b],
             self.p_slo,
             self.p_shi,
-            *self.p_corner.T.astype(np.float64),
+            *self.p_corner.T,
             self.p_pipe,
             self.p_win_s0,
             self.p_win_cols,
             self.p_win_rows,
             self.p_win_off,
+            wall,
             self.p_leak_peak,
-            *(self.p_leak_c - self.origin).T,
-            -0.5 / self.p_leak_sigma**2,
         ]
+        if len(self.win_mask) >= 1 << 24:
+            raise SynthError("thermal scene too large for the window tables (float32 offsets)")
         self._tab = np.array(rows, dtype=np.float32).reshape(len(rows), -1)
-        self._n_sin = n_sin
+        self._n_sin = self.b_wave.shape[1]
+        leak = [self.p_leak_peak, *(self.p_leak_c - self.origin).T, -0.5 / self.p_leak_sigma**2]
+        self._leak = np.array(leak, dtype=np.float32).reshape(5, -1)
         self._g_wave = (2 * np.pi * self.g_wave).astype(np.float32)
         g_phase = self.g_phase + 2 * np.pi * (self.g_wave @ self.origin[:2])  # origin-independent
         self._g_phase = np.mod(g_phase, 2 * np.pi).astype(np.float32)
@@ -355,41 +361,45 @@ class ThermalScene:
     def temperature_local(self, points_local: np.ndarray, polygon_index: np.ndarray) -> np.ndarray:
         """`temperature` for points `(N, 3)` float32 relative to `self.origin` (fast path)."""
         X = np.asarray(points_local, dtype=np.float32).reshape(-1, 3)
+        x, y, z = (np.ascontiguousarray(c) for c in X.T)
+        return self.temperature_xyz(x, y, z, polygon_index)
+
+    def temperature_xyz(
+        self, x: np.ndarray, y: np.ndarray, z: np.ndarray, polygon_index: np.ndarray
+    ) -> np.ndarray:
+        """`temperature_local` with the coordinates as three `(N,)` float32 arrays."""
         p = np.asarray(polygon_index, dtype=np.intp).reshape(-1)
-        if len(p) != len(X):
-            raise SynthError(f"temperature: {len(X)} points but {len(p)} polygon indices")
+        if not (len(p) == len(x) == len(y) == len(z)):
+            raise SynthError(f"temperature: {len(x)} points but {len(p)} polygon indices")
         if len(p) == 0:
             return np.zeros(0, np.float32)
         if p.min() < 0 or p.max() >= len(self.polygon_ids):
             raise SynthError("temperature: polygon_index out of range")
         o = self.options
-        g = np.take(self._tab, p, axis=1)  # (K, N) contiguous rows
+        g = np.take(self._tab, p, axis=1, mode="clip")  # (K, N) contiguous rows
         T = g[8].copy()
         if not o.features:
             return T
-        x, y, z = (np.ascontiguousarray(c) for c in X.T)
         s = x * g[0] + y * g[1] + z * g[2] - g[3]
-        h = z - g[9]
-        wall = g[10] > 0
-        v = np.where(wall, h, x * g[4] + y * g[5] + z * g[6] - g[7])
-        n = self._n_sin
+        v = x * g[4] + y * g[5] + z * g[6] - g[7]  # height above the base on walls
         amp = np.float32(o.texture_amplitude_k)
-        for j in range(n):
-            T += amp * np.sin(g[11 + 2 * j] * s + g[12 + 2 * j] * v + g[11 + 2 * n + j])
-        k = 11 + 3 * n
-        T += self._wall_terms(s, h, g[k:], wall)
-        il = np.flatnonzero(g[k + 11] > 0)
+        for j in range(self._n_sin):
+            T += amp * np.sin(g[9 + 3 * j] * s + g[10 + 3 * j] * v + g[11 + 3 * j])
+        wt = g[9 + 3 * self._n_sin :]
+        T += self._wall_terms(s, v, wt)
+        il = np.flatnonzero(wt[12] > 0)
         if len(il):
-            d2 = (x[il] - g[k + 12, il]) ** 2 + (y[il] - g[k + 13, il]) ** 2 + (z[il] - g[k + 14, il]) ** 2
-            T[il] += g[k + 11, il] * np.exp(g[k + 15, il] * d2)
+            lk = np.take(self._leak, p[il], axis=1, mode="clip")
+            d2 = (x[il] - lk[1]) ** 2 + (y[il] - lk[2]) ** 2 + (z[il] - lk[3]) ** 2
+            T[il] += lk[0] * np.exp(lk[4] * d2)
         return T
 
-    def _wall_terms(self, s: np.ndarray, h: np.ndarray, g: np.ndarray, wall: np.ndarray) -> np.ndarray:
+    def _wall_terms(self, s: np.ndarray, h: np.ndarray, g: np.ndarray) -> np.ndarray:
         """Windows, slabs, corners and pipes at wall-local `s`, `h` `(N,)` float32 -> increments
-        `(N,)` float32 K (zero off walls); `g` = gathered wall rows of `_tab` from `storey` on."""
+        `(N,)` float32 K (zero off walls); `g` = gathered rows of `_tab` from `storey` on."""
         o = self.options
         f32 = np.float32
-        storey, pitch, slo, shi, c_lo, c_hi, pipe, s0, cols, rows, off = g[:11]
+        storey, pitch, slo, shi, c_lo, c_hi, pipe, s0, cols, rows, off, wall = g[:12]
         q = h / storey
         row = np.floor(q)
         dh = (q - np.round(q)) * storey
@@ -407,7 +417,7 @@ class ThermalScene:
         w = h - row * storey - f32(o.window_sill_m)
         cand = np.flatnonzero(
             (u >= 0) & (u <= o.window_width_m) & (w >= 0) & (w <= o.window_height_m)
-            & (col >= 0) & (col < cols) & (row >= 0) & (row < rows) & wall
+            & (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
         )  # fmt: skip
         if len(cand):
             idx = (off[cand] + row[cand] * cols[cand] + col[cand]).astype(np.int64)
@@ -418,7 +428,7 @@ class ThermalScene:
             dT[cand[frame]] += f32(o.frame_delta_k)
             pane = cand[~frame]
             dT[pane] += f32(o.window_delta_k) + f32(0.6) * (w[pane] / f32(o.window_height_m) - f32(0.5))
-        return np.where(wall, dT, f32(0.0))
+        return dT * wall
 
     def surface_temperature(self, polygon: int | str, points: np.ndarray) -> np.ndarray:
         """Temperature `(N,)` float32 K at world points `(N, 3)` on one polygon (index or id)."""
