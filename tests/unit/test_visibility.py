@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.unit.texture_scene import box_building, field, look_at, render
 from workers.pipeline.camera import Camera
 from workers.pipeline.raycast import RayCaster, build_scene_mesh
 from workers.pipeline.sequence import Radiometry
-from workers.pipeline.units import ArrayFrameSource, plan_units, texture_unit
-from workers.pipeline.visibility import VisibilityOptions, boxes_in_frustum, project_texels
+from workers.pipeline.texel import TexelOptions, texel_grid
+from workers.pipeline.units import ArrayFrameSource, PlanOptions, plan_units, texture_unit
+from workers.pipeline.visibility import VisibilityOptions, boxes_in_frustum, buried_texels, project_texels
 
 CAM = Camera(200, 160, 180.0, 180.0, 99.5, 79.5, k1=-0.08)
 
@@ -62,17 +64,22 @@ def _segment_hits_box(p: np.ndarray, q: np.ndarray, lo: np.ndarray, hi: np.ndarr
     return (tmax > np.maximum(tmin, 0.0) + 1e-6) & (tmin < 1.0 - 1e-6)
 
 
-def test_a_building_hidden_behind_another_gets_no_texels_from_the_frames_where_it_is_hidden():
+@pytest.mark.parametrize("ray_step_px", [0, 8])
+def test_a_building_hidden_behind_another_gets_no_texels_from_the_frames_where_it_is_hidden(ray_step_px):
     front = box_building("FRONT", 0, 0, 12, 6, 10)
     back = box_building("BACK", 0, 20, 12, 28, 8)
     poses = [look_at([6, -15, 1.6], [6, 20, 4])]  # back wall entirely hidden
     poses += [look_at([x, -15, 1.6], [6, 24, 4]) for x in (-14, -10, 24)]  # partly hidden
     poses += [look_at([6 + dx, 13, 1.6], [6 + dx, 20, 4]) for dx in (-2, 2)]  # between: visible
     frames = {i: render(CAM, p, [front, back]) for i, p in enumerate(poses)}
-    units = plan_units([front, back], CAM, poses, ArrayFrameSource(frames), Radiometry(), targets=["BACK"])
+    plan = PlanOptions(ray_step_px=ray_step_px)
+    units = plan_units(
+        [front, back], CAM, poses, ArrayFrameSource(frames), Radiometry(), targets=["BACK"], plan=plan
+    )
     (unit,) = units
     assert [o.id for o in unit.occluders] == ["FRONT"]
-    assert 0 in unit.frames
+    # the box test keeps frame 0 (the texel test must reject it); the ray test drops it already
+    assert (0 in unit.frames) == (ray_step_px == 0)
     rc = RayCaster(build_scene_mesh([unit.building, *unit.occluders]))
     tex = texture_unit(unit, dict(zip(unit.frames, unit.poses, strict=True)), rc)
     k = [p.id for p in tex.polygons].index("BACK_w0")
@@ -93,3 +100,15 @@ def test_a_building_hidden_behind_another_gets_no_texels_from_the_frames_where_i
     err = fused.value[r, c] - field(grid.centres(r, c))
     assert np.sqrt(np.mean(err**2)) < 0.2
     assert partly_hidden_used >= 1
+
+
+def test_texels_on_a_shared_wall_are_never_visible():
+    a = box_building("A", 0, 0, 10, 8, 6)
+    b = box_building("B", 10, 0, 18, 8, 4)  # touches A's east wall (x = 10) up to 4 m
+    rc = RayCaster(build_scene_mesh([a, b]))
+    east = a.polygons[1]
+    g = texel_grid(east, "A", TexelOptions(resolution_px_per_m=5))
+    r, c = g.masked_indices()
+    pts = g.centres(r, c)
+    got = buried_texels(rc, pts, g.normal)
+    assert np.array_equal(got, pts[:, 2] < 4.0)

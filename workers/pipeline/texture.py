@@ -189,6 +189,16 @@ class SurfaceTexels:
         hi = pts.max(axis=0) if len(pts) else grid.corner
         return cls(grid=grid, rows=rows, cols=cols, points=pts, lo=lo, hi=hi)
 
+    def without(self, drop: np.ndarray) -> SurfaceTexels:
+        """The same surface without the texels flagged in `drop (N,)` (e.g. never visible)."""
+        if not drop.any():
+            return self
+        keep = ~drop
+        pts = self.points[keep]
+        lo = pts.min(axis=0) if len(pts) else self.lo
+        hi = pts.max(axis=0) if len(pts) else self.hi
+        return SurfaceTexels(self.grid, self.rows[keep], self.cols[keep], pts, lo, hi)
+
 
 def texture_frame(
     image: np.ndarray,

@@ -27,7 +27,13 @@ from workers.pipeline.results import BuildingResult, FramePose, SurfaceStats
 from workers.pipeline.sequence import Accuracy, FrameSource, Radiometry
 from workers.pipeline.texel import TexelGrid, TexelOptions, texel_grid
 from workers.pipeline.texture import FusionOptions, SurfaceTexels, SurfaceTexture, texture_frame
-from workers.pipeline.visibility import OcclusionScene, VisibilityOptions, boxes_in_frustum
+from workers.pipeline.visibility import (
+    OcclusionScene,
+    VisibilityOptions,
+    boxes_in_frustum,
+    buried_texels,
+    pixel_rays,
+)
 
 
 class UnitError(ValueError):
@@ -43,11 +49,19 @@ class PlanOptions:
         occluder_margin_m: a neighbour is an occluder candidate when its box meets the box spanned
             by the building and the projection centres that see it, grown by this margin.
         min_frames: buildings seen by fewer frames get no unit.
+        ray_step_px: after the box test, rays through every `ray_step_px`-th pixel (in both
+            directions) are cast through the candidate buildings; a frame sees a building only
+            when at least `min_ray_hits` of them hit it first (0: box test only).
+        adjacency_m: buildings whose boxes come this close are always each other's occluders
+            (shared walls).
     """
 
     max_distance_m: float = 300.0
     occluder_margin_m: float = 1.0
     min_frames: int = 1
+    ray_step_px: int = 8
+    min_ray_hits: int = 2
+    adjacency_m: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -139,7 +153,8 @@ def plan_units(
         targets: ids of the buildings to make units for (default all).
 
     Returns one unit per target building seen by at least `plan.min_frames` frames, in the
-    order of `buildings`. The test is a conservative bounding-box frustum test per frame.
+    order of `buildings`. The test per frame is a conservative bounding-box frustum test, then a
+    sparse grid of pixel rays cast through the candidate buildings.
     """
     n = len(poses)
     idx = list(range(n)) if frame_indices is None else [int(i) for i in frame_indices]
@@ -159,6 +174,8 @@ def plan_units(
     sees = np.zeros((n, len(buildings)), dtype=bool)
     for f, pose in enumerate(poses):
         sees[f] = boxes_in_frustum(camera, pose, lo, hi, vis_opts)
+    if plan.ray_step_px > 0 and sees.any():
+        sees &= _ray_sees(buildings, camera, poses, sees, vis_opts.max_distance_m, plan)
     wanted = None if targets is None else set(targets)
     if wanted is not None:
         missing = wanted - {b.id for b in buildings}
@@ -173,10 +190,11 @@ def plan_units(
         if len(fr) < plan.min_frames or len(fr) == 0:
             continue
         # occluders: seen by one of these frames and meeting the box spanned by the building
-        # and the projection centres that see it
+        # and the projection centres that see it; plus the buildings it touches
         span_lo = np.minimum(lo[k], centers[fr].min(axis=0)) - plan.occluder_margin_m
         span_hi = np.maximum(hi[k], centers[fr].max(axis=0)) + plan.occluder_margin_m
         meets = np.all((lo <= span_hi) & (hi >= span_lo), axis=1) & sees[fr].any(axis=0)
+        meets |= np.all((lo <= hi[k] + plan.adjacency_m) & (hi >= lo[k] - plan.adjacency_m), axis=1)
         meets[k] = False
         units.append(
             BuildingUnit(
@@ -193,6 +211,34 @@ def plan_units(
             )
         )
     return units
+
+
+def _ray_sees(
+    buildings: Sequence[Building],
+    camera: Camera,
+    poses: Sequence[Pose],
+    candidates: np.ndarray,
+    max_distance_m: float,
+    plan: PlanOptions,
+) -> np.ndarray:
+    """`(F, B)` bool: frame f sees building b with at least `plan.min_ray_hits` first hits of a
+    sparse grid of pixel rays cast through the candidate buildings (`candidates (F, B)`)."""
+    ids = np.nonzero(candidates.any(axis=0))[0]
+    mesh = build_scene_mesh([buildings[j] for j in ids])
+    caster = RayCaster(mesh)
+    local = {buildings[j].id: j for j in ids}
+    poly_building = np.array([local[b] for b in mesh.polygon_building], dtype=np.intp)
+    step = plan.ray_step_px
+    rays = pixel_rays(camera)[step // 2 :: step, step // 2 :: step].reshape(-1, 3).astype(np.float64)
+    out = np.zeros_like(candidates)
+    for f, pose in enumerate(poses):
+        if not candidates[f].any():
+            continue
+        hits = caster.cast(np.broadcast_to(pose.center, rays.shape), rays @ pose.R_world_from_cam.T)
+        ok = (hits.polygon >= 0) & (hits.t <= max_distance_m)
+        counts = np.bincount(poly_building[hits.polygon[ok]], minlength=len(buildings))
+        out[f] = counts >= plan.min_ray_hits
+    return out
 
 
 def _refine(unit: BuildingUnit, raycaster: RayCaster) -> tuple[dict[int, Pose], tuple[FramePose, ...]]:
@@ -294,6 +340,8 @@ def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCa
             polygons.append(poly)
             grids.append(grid)
     surfaces = [SurfaceTexels.of(g) for g in grids]
+    if raycaster is not None:  # texels covered by a touching building (shared walls) are never seen
+        surfaces = [s.without(buried_texels(raycaster, s.points, s.grid.normal)) for s in surfaces]
     scene = OcclusionScene(raycaster, unit.camera) if raycaster is not None else None
     textures = [SurfaceTexture.empty(g.shape) for g in grids]
     t_grid = time.perf_counter() - t0

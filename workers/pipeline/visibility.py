@@ -249,6 +249,22 @@ def consistent_samples(
     return ok
 
 
+def buried_texels(
+    raycaster: RayCaster, points: np.ndarray, normal: np.ndarray, offset_m: float = 0.02
+) -> np.ndarray:
+    """`(N,)` bool: texels `points (N, 3)` of a surface with unit `normal (3,)` that lie inside or on
+    the wall of another solid (a shared wall of touching buildings, modelled twice): a ray from
+    just in front of the texel along the normal first meets a surface from behind (its normal
+    points along the ray). Such texels are never seen from outside."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    n = np.asarray(normal, dtype=np.float64)
+    hits = raycaster.cast(
+        np.asarray(points, dtype=np.float64) + offset_m * n, np.broadcast_to(n, points.shape)
+    )
+    return hits.hit & (hits.normal @ n > 0.0)
+
+
 class OcclusionScene:
     """Everything the per-texel occlusion test needs for one unit: the ray caster over the scene
     (building and occluders), the camera's pixel rays, and the scene index of each polygon id.
