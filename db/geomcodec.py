@@ -16,6 +16,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import shapely
@@ -86,6 +87,7 @@ class EncodedPolygons:
         area: `(P,)` areas (exterior minus holes), m².
         planarity: `(P,)` largest distance of any vertex (all rings) from the plane, m.
         min_vertices: `(P,)` fewest vertices of any ring, closing vertex not counted.
+        lo, hi: `(P, 3)` 3D bounds of each polygon (NaN for a polygon without vertices).
     """
 
     ewkb: list[str | None]
@@ -95,47 +97,73 @@ class EncodedPolygons:
     area: np.ndarray
     planarity: np.ndarray
     min_vertices: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+@lru_cache(maxsize=4096)
+def _u32_hex(n: int) -> str:
+    return struct.pack("<I", n).hex()
 
 
 def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
     """Encode a batch of polygons and compute their planes (Newell's method, vectorised)."""
+    n_poly = len(polygons)
+    if n_poly == 0:
+        e, e3 = np.zeros(0), np.zeros((0, 3))
+        return EncodedPolygons([], [], e3, e, e, e, np.zeros(0, dtype=np.int64), e3, e3)
+    rings_all = [r.coords for p in polygons for r in p.rings]
+    counts = [len(p.interiors) + 1 for p in polygons]
+    ring_poly_a = np.repeat(np.arange(n_poly), counts)
+    ext = np.zeros(len(rings_all), dtype=bool)
+    ext[np.cumsum([0, *counts[:-1]]).astype(np.int64)] = True
+    raw_len = np.array([len(c) for c in rings_all], dtype=np.int64)
+    cat = np.concatenate(rings_all, axis=0).astype(np.float64, copy=False) if rings_all else np.zeros((0, 3))
+    raw_start = np.concatenate([[0], np.cumsum(raw_len)[:-1]]).astype(np.int64)
+    nonempty = raw_len > 0
+    first = cat[np.where(nonempty, raw_start, 0)] if len(cat) else np.zeros((len(raw_len), 3))
+    last = cat[np.where(nonempty, raw_start + raw_len - 1, 0)] if len(cat) else first
+    closed = nonempty & (raw_len >= 2) & np.all(first == last, axis=1)
+    lengths = raw_len.copy()
+    if not closed[nonempty].all():
+        # close the open rings (PostGIS refuses them): rebuild the concatenation with the first vertex
+        parts = []
+        for c, is_closed in zip(rings_all, closed.tolist(), strict=True):
+            parts.append(c if is_closed or len(c) == 0 else np.vstack([c, c[:1]]))
+        cat = np.concatenate(parts, axis=0).astype(np.float64, copy=False)
+        lengths = np.array([len(c) for c in parts], dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+    hexcat = np.ascontiguousarray(cat, dtype="<f8").tobytes().hex()
+    header = _header(_POLYGON, srid).hex()
+    closed_l, len_l, start_l = closed.tolist(), lengths.tolist(), starts.tolist()
     ewkb: list[str | None] = []
     closed_flags: list[list[bool]] = []
-    closed_rings: list[np.ndarray] = []
-    ring_poly: list[int] = []
-    ring_is_ext: list[bool] = []
-    for k, poly in enumerate(polygons):
-        rings = []
-        flags = []
+    r = 0
+    for cnt in counts:
         ok = True
-        for j, r in enumerate(poly.rings):
-            c = np.asarray(r.coords, dtype=np.float64)
-            closed = c.shape[0] >= 2 and bool(np.array_equal(c[0], c[-1]))
-            if not closed and c.shape[0] > 0:
-                c = np.vstack([c, c[:1]])
-            if c.shape[0] < 4:
-                ok = False
-            flags.append(closed)
-            rings.append(c)
-            if c.shape[0] > 0:
-                closed_rings.append(c)
-                ring_poly.append(k)
-                ring_is_ext.append(j == 0)
-        closed_flags.append(flags)
-        ewkb.append(encode_polygon_z(rings, srid) if ok else None)
-    n_poly = len(polygons)
+        pieces = [header, _u32_hex(cnt)]
+        for j in range(r, r + cnt):
+            n = len_l[j]
+            ok = ok and n >= 4
+            pieces.append(_u32_hex(n))
+            pieces.append(hexcat[48 * start_l[j] : 48 * (start_l[j] + n)])
+        ewkb.append("".join(pieces) if ok else None)
+        closed_flags.append(closed_l[r : r + cnt])
+        r += cnt
     normal = np.full((n_poly, 3), np.nan)
     offset = np.full(n_poly, np.nan)
     area = np.full(n_poly, np.nan)
     planarity = np.full(n_poly, np.nan)
     min_vertices = np.zeros(n_poly, dtype=np.int64)
-    if not closed_rings:
-        return EncodedPolygons(ewkb, closed_flags, normal, offset, area, planarity, min_vertices)
-    lengths = np.array([c.shape[0] for c in closed_rings])
-    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    pts = np.concatenate(closed_rings, axis=0)
+    lo = np.full((n_poly, 3), np.nan)
+    hi = np.full((n_poly, 3), np.nan)
+    keep = lengths > 0
+    if not keep.any():
+        return EncodedPolygons(ewkb, closed_flags, normal, offset, area, planarity, min_vertices, lo, hi)
+    lengths, starts, ring_poly_a, ext = lengths[keep], starts[keep], ring_poly_a[keep], ext[keep]
+    abs_pts = cat
     # centre each ring on its first vertex: large UTM coordinates lose no precision in the products
-    pts = pts - np.repeat(pts[starts], lengths, axis=0)
+    pts = cat - np.repeat(cat[starts], lengths, axis=0)
     a, b = pts[:-1], pts[1:]
     terms = np.stack(
         [
@@ -152,10 +180,7 @@ def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
     terms = np.vstack([terms, np.zeros((1, 3))])
     newell = np.add.reduceat(terms, starts, axis=0)  # (R, 3), length = 2 × area
     ring_area = 0.5 * np.linalg.norm(newell, axis=1)
-    ring_poly_a = np.asarray(ring_poly)
-    ext = np.asarray(ring_is_ext)
     # exterior ring centroid (distinct vertices: closing vertex excluded)
-    abs_pts = np.concatenate(closed_rings, axis=0)
     sums = np.add.reduceat(abs_pts, starts, axis=0) - abs_pts[starts + lengths - 1]
     centroid = sums / np.maximum(lengths - 1, 1)[:, None]
     ext_idx = np.flatnonzero(ext)
@@ -173,55 +198,89 @@ def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
     dist = np.abs(np.einsum("ij,ij->i", abs_pts, normal[vert_poly]) - offset[vert_poly])
     poly_start = np.concatenate([[0], np.flatnonzero(np.diff(vert_poly)) + 1])
     planarity[vert_poly[poly_start]] = np.maximum.reduceat(dist, poly_start)
+    lo[vert_poly[poly_start]] = np.minimum.reduceat(abs_pts, poly_start, axis=0)
+    hi[vert_poly[poly_start]] = np.maximum.reduceat(abs_pts, poly_start, axis=0)
     min_vertices[:] = np.iinfo(np.int64).max
     np.minimum.at(min_vertices, ring_poly_a, lengths - 1)
     min_vertices[min_vertices == np.iinfo(np.int64).max] = 0
-    return EncodedPolygons(ewkb, closed_flags, normal, offset, area, planarity, min_vertices)
+    return EncodedPolygons(ewkb, closed_flags, normal, offset, area, planarity, min_vertices, lo, hi)
 
 
-def _footprint_geometry(building: Building, normals: dict[str, np.ndarray]) -> shapely.Geometry | None:
-    """2D footprint of a building (parts included): union of its ground surfaces, else of its
-    downward-facing polygons, else the convex hull of all vertices; a valid (Multi)Polygon."""
+def _ground(building: Building, normals: dict[str, np.ndarray]) -> list[Polygon]:
+    """The polygons making the footprint: ground surfaces, else downward-facing polygons."""
     polys = list(building.iter_polygons())
-    if not polys:
-        return None
     ground = [p for p in polys if p.surface_class == "GroundSurface"]
     if not ground:
         ground = [p for p in polys if p.id in normals and normals[p.id][2] < _DOWNWARD_NZ]
-    shapes = []
-    for p in ground:
+    return [p for p in ground if len(p.exterior.coords) >= 3]
+
+
+def _shapes_2d(polys: Sequence[Polygon]) -> list[shapely.Geometry | None]:
+    """2D shapely polygons of `polys` (z dropped), made valid; None where degenerate. Polygons
+    without holes are built in one vectorised call."""
+    out: list[shapely.Geometry | None] = [None] * len(polys)
+    simple = [k for k, p in enumerate(polys) if not p.interiors]
+    if simple:
+        coords = np.concatenate([polys[k].exterior.coords[:, :2] for k in simple], axis=0)
+        idx = np.repeat(np.arange(len(simple)), [len(polys[k].exterior.coords) for k in simple])
         try:
-            g = shapely.Polygon(p.exterior.coords[:, :2], [h.coords[:, :2] for h in p.interiors])
+            geoms = shapely.polygons(shapely.linearrings(coords, indices=idx))
         except (ValueError, shapely.errors.GEOSException):
-            continue
-        if not g.is_valid:
-            g = shapely.make_valid(g)
-        if not g.is_empty and g.area > 0:
-            shapes.append(g)
-    if shapes:
-        geom = shapes[0] if len(shapes) == 1 else shapely.union_all(shapes)
-    else:
-        pts = np.concatenate([r.coords[:, :2] for p in polys for r in p.rings], axis=0)
-        geom = shapely.MultiPoint(pts).convex_hull
-    if not geom.is_valid:
-        geom = shapely.make_valid(geom)
-    parts = [g for g in shapely.get_parts(geom) if isinstance(g, shapely.Polygon) and g.area > 0]
-    if not parts:
-        return None
-    return shapely.MultiPolygon(parts)
+            geoms = None
+        if geoms is not None:
+            for k, g in zip(simple, geoms, strict=True):
+                out[k] = g
+    for k, p in enumerate(polys):
+        if out[k] is None:
+            try:
+                out[k] = shapely.Polygon(p.exterior.coords[:, :2], [h.coords[:, :2] for h in p.interiors])
+            except (ValueError, shapely.errors.GEOSException):
+                out[k] = None
+    arr = np.array(out, dtype=object)
+    ok = np.array([g is not None for g in out], dtype=bool)
+    if ok.any():
+        bad = ok.copy()
+        bad[ok] = ~shapely.is_valid(arr[ok])
+        if bad.any():
+            arr[bad] = shapely.make_valid(arr[bad])
+    return [None if g is None or g.is_empty or g.area <= 0 else g for g in arr]
 
 
 def encode_footprints(
     buildings: Sequence[Building], normals: dict[str, np.ndarray], srid: int
 ) -> list[str | None]:
-    """Hex EWKB `MULTIPOLYGON` footprints (2D, SRID set) per building, None where there is none.
+    """Hex EWKB `MULTIPOLYGON` footprints (2D, SRID set) per building, None where there is none:
+    the union of its ground surfaces (parts included), else of its downward-facing polygons,
+    else the convex hull of all its vertices; always valid.
 
     `normals` maps polygon id -> unit normal `(3,)` (from `encode_polygons`)."""
-    geoms = [_footprint_geometry(b, normals) for b in buildings]
-    arr = np.array([g if g is not None else None for g in geoms], dtype=object)
-    if len(arr) == 0:
+    if not buildings:
         return []
-    arr = shapely.set_srid(arr, srid)
+    grounds = [_ground(b, normals) for b in buildings]
+    shapes = _shapes_2d([p for g in grounds for p in g])
+    geoms: list[shapely.Geometry | None] = []
+    k = 0
+    for b, g in zip(buildings, grounds, strict=True):
+        mine = [s for s in shapes[k : k + len(g)] if s is not None]
+        k += len(g)
+        if len(mine) == 1:
+            geom = mine[0]
+        elif mine:
+            geom = shapely.union_all(mine)
+        else:
+            rings = [r.coords[:, :2] for p in b.iter_polygons() for r in p.rings]
+            if not rings:
+                geoms.append(None)
+                continue
+            geom = shapely.MultiPoint(np.concatenate(rings, axis=0)).convex_hull
+        if not geom.is_valid:
+            geom = shapely.make_valid(geom)
+        if geom.geom_type == "Polygon":
+            geoms.append(shapely.MultiPolygon([geom]) if geom.area > 0 else None)
+            continue
+        parts = [x for x in shapely.get_parts(geom) if x.geom_type == "Polygon" and x.area > 0]
+        geoms.append(shapely.MultiPolygon(parts) if parts else None)
+    arr = shapely.set_srid(np.array(geoms, dtype=object), srid)
     out = shapely.to_wkb(arr, hex=True, include_srid=True, output_dimension=2)
     return [None if g is None else str(o) for g, o in zip(geoms, out, strict=True)]
 

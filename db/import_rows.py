@@ -62,7 +62,8 @@ class BatchLines:
 
 
 def _num(v: float) -> str:
-    return repr(float(v)) if np.isfinite(v) else "\\N"
+    """A Python float -> COPY text (NULL for NaN/inf)."""
+    return repr(v) if v == v and v not in (float("inf"), float("-inf")) else "\\N"
 
 
 def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
@@ -70,14 +71,20 @@ def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
     flat: list[Building] = []
     parent: list[int] = []
     root: list[int] = []
+    sub: list[tuple[int, int]] = []  # polygon index range of each building's subtree (DFS order)
+    n_polys = 0
 
     def walk(b: Building, r: int, p: int) -> None:
+        nonlocal n_polys
         k = len(flat)
         flat.append(b)
         parent.append(p)
         root.append(k if r < 0 else r)
+        sub.append((n_polys, 0))
+        n_polys += len(b.polygons)
         for c in b.parts:
             walk(c, root[k], k)
+        sub[k] = (sub[k][0], n_polys)
 
     for t in tops:
         walk(t, -1, -1)
@@ -89,9 +96,11 @@ def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
     footprints = encode_footprints(flat, normals, srid)
     f = copy_field
     b_tails = []
-    for b, fp in zip(flat, footprints, strict=True):
-        has_geometry = next(b.iter_polygons(), None) is not None
-        env = encode_envelope(*b.bounds(), srid) if has_geometry else None
+    for b, fp, (p0, p1) in zip(flat, footprints, sub, strict=True):
+        env = None
+        if p1 > p0:
+            lo, hi = np.fmin.reduce(enc.lo[p0:p1], axis=0), np.fmax.reduce(enc.hi[p0:p1], axis=0)
+            env = encode_envelope(lo, hi, srid) if np.all(np.isfinite(lo)) else None
         attrs = json.dumps(jsonable(dict(b.attributes))) if b.attributes else "{}"
         b_tails.append(
             "\t".join(
@@ -101,6 +110,7 @@ def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
         )  # fmt: skip
     finite_n = np.all(np.isfinite(enc.normal), axis=1)
     normal_l = enc.normal.tolist()
+    offset_l, area_l = enc.offset.tolist(), enc.area.tolist()
     s_tails = []
     ordinal = 0
     last_owner = -1
@@ -116,8 +126,8 @@ def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
                  f(pg_text_array([r.id for r in rings])), pg_bool_array([r.generated_id for r in rings]),
                  pg_bool_array(enc.ring_closed[k]), f(p.surface_class), f(p.surface_id), str(int(p.lod)),
                  "t" if p.in_solid else "f", f(p.collection_id), ewkb if ewkb is not None else "\\N", f(raw),
-                 pg_float_array(normal_l[k]) if finite_n[k] else "\\N", _num(enc.offset[k]),
-                 _num(enc.area[k]), f(checks_json[k]))
+                 pg_float_array(normal_l[k]) if finite_n[k] else "\\N", _num(offset_l[k]),
+                 _num(area_l[k]), f(checks_json[k]))
             )
         )  # fmt: skip
         ordinal += 1

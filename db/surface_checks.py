@@ -22,7 +22,8 @@ __all__ = ["fast_checks", "full_checks", "jsonable", "surface_checks"]
 
 
 def _num(v: float) -> str:
-    return repr(float(v)) if np.isfinite(v) else "null"
+    """A Python float -> JSON number (null for NaN/inf)."""
+    return repr(v) if v == v and v not in (float("inf"), float("-inf")) else "null"
 
 
 def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
@@ -60,6 +61,7 @@ def fast_checks(enc: EncodedPolygons, polygons: Sequence[Polygon]) -> list[str]:
         zero = ~np.isfinite(enc.area) | (enc.area < opt.min_area_m2)
         nonplanar = np.isfinite(enc.planarity) & (enc.planarity > opt.planarity_tolerance_m)
     out = []
+    verts, plan, area = enc.min_vertices.tolist(), enc.planarity.tolist(), enc.area.tolist()
     for k, p in enumerate(polygons):
         problems = []
         if few[k]:
@@ -74,8 +76,8 @@ def fast_checks(enc: EncodedPolygons, polygons: Sequence[Polygon]) -> list[str]:
             unclosed = json.dumps([r.id for r, c in zip(p.rings, closed, strict=True) if not c])
             problems.append('"unclosed_ring"')
         out.append(
-            f'{{"level": "fast", "vertices": {int(enc.min_vertices[k])}, '
-            f'"planarity_m": {_num(enc.planarity[k])}, "area_m2": {_num(enc.area[k])}, '
+            f'{{"level": "fast", "vertices": {verts[k]}, '
+            f'"planarity_m": {_num(plan[k])}, "area_m2": {_num(area[k])}, '
             f'"unclosed_rings": {unclosed}, "problems": [{", ".join(problems)}]}}'
         )
     return out
