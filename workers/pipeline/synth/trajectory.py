@@ -38,7 +38,7 @@ class DriveOptions:
     height_m: float = 2.25  # IMU reference point above ground (camera 2–2.5 m)
     distance_m: float = 11.0  # from the cluster's facades; tried first, then others in 8..15
     look_forward_deg: float = 25.0  # camera turned from the right side toward the front
-    look_up_deg: float = 12.0  # camera tilted up
+    look_up_deg: float = 18.0  # camera tilted up (roof lines of 2-3 storey houses in view)
     sway_deg: float = 0.3  # slow roll/pitch sway amplitude (true motion, seen by the INS)
     clearance_m: float = 1.5  # the path keeps this distance from every other footprint
 
