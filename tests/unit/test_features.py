@@ -61,12 +61,13 @@ def test_intersections_respect_the_angle_and_gap_thresholds():
 
 
 def test_distance_pyramid_is_zero_on_edges_and_grows_away():
-    f = extract_features(_rectangle_frame())
+    f = extract_features(_rectangle_frame(), FeatureOptions(dt_levels=(1, 4)))
     dt1 = f.dt[1]
     assert dt1[140, 120] <= 1.0  # bottom side, v = 140.2
     assert dt1[95, 115] > 10.0  # rectangle centre, far from every side
-    assert set(f.dt) == {1, 2, 4, 8}
+    assert set(f.dt) == {1, 4}
     assert f.dt[4].shape == (200 // 4, 240 // 4)
+    assert f.dt[4][140 // 4, 120 // 4] <= 1.0
 
 
 def test_roi_features_are_in_full_frame_coordinates():

@@ -12,16 +12,21 @@ Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
    coarse correspondence-free search on edge distances, then iterative robust least squares of
    the six exterior-orientation parameters with the prior as a weighted observation, search
    radii shrinking (`coregister_frame`); accepted only when well determined;
-2. sequence level: corrections `δ = (ω_cam, dC_world)` of consecutive frames are strongly
-   correlated (constant boresight error, slow GNSS drift). A robust, time-weighted median of the
-   accepted corrections predicts each frame's correction. Accepted frames that disagree with
-   their neighbours' prediction by more than a gate (pixels on the building) are treated as
-   failures. Failures are fitted again from the predicted pose with a tight prior (the
-   neighbours' scatter). A frame that still fails **inherits** the prediction, with status
-   `"refined"` only when the prediction is well supported: at least `inherit_min_neighbours`
-   accepted frames within the window, on both sides in time (interpolation, not extrapolation),
-   and their scatter projected onto the building below `inherit_max_scatter_px`. Otherwise the
-   frame keeps its prior pose with status `"prior"`.
+2. sequence level (`coregister_sequence`): corrections `δ = (ω_cam, dC_world)` of consecutive
+   frames are strongly correlated (constant boresight error, slow GNSS drift). First a **joint
+   coarse search** sums the edge-distance score maps of all frames and applies the common
+   correction to every prior; each frame then gets a small coarse search of its own and the
+   robust adjustment (pass 1). Frames that converged (found the building, whether or not alone
+   they determine the pose) give each frame a **prediction**: the information-weighted,
+   time-weighted mean of its neighbours' corrections (outliers gated). A frame accepted in pass 1
+   and consistent with its prediction keeps its fit; every other frame is fitted again (pass 2)
+   with the prediction as its prior (covariance: the mean's plus the per-frame noise
+   `frame_sigma_*`), which makes frames that see only one or two edges well determined.
+   **Inheritance rule**: a frame that still fails takes the predicted pose with status
+   `"refined"` only when at least `inherit_min_neighbours` converged neighbours lie within the
+   window on both sides in time (interpolation, never extrapolation) and the prediction's own
+   uncertainty projected onto the building is ≤ `inherit_max_sigma_px`; otherwise it keeps its
+   prior with status `"prior"`. `rms_px` is NaN and `matches` 0 for an inherited pose.
 
 `matches` counts inlier corner matches plus edges with at least half of their visible samples
 matched; `rms_px` is the RMS of inlier residuals (edge-normal distances and corner distances).
@@ -30,7 +35,7 @@ matched; `rms_px` is the RMS of inlier residuals (edge-normal distances and corn
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -42,7 +47,9 @@ from workers.pipeline.coregister_frame import (
     apply_delta,
     fit_frame,
     pose_delta,
+    project_jacobian,
 )
+from workers.pipeline.coregister_sequence import apply_coarse, frame_noise_covariance, joint_coarse, predict
 from workers.pipeline.features import FeatureError, FeatureOptions, extract_features
 from workers.pipeline.model_edges import (
     EdgeOptions,
@@ -80,17 +87,31 @@ class CoregisterOptions:
     # without times, frame indices are used as seconds
     window_s: float = 4.0
     time_sigma_s: float = 1.5
-    # an accepted frame deviating from its neighbours' prediction by more than
-    # max(outlier_gate_px, outlier_gate_sigma × their scatter) on the building is refitted
-    outlier_gate_px: float = 4.0
-    outlier_gate_sigma: float = 3.0
-    # second pass: standard deviation floors of the neighbour prediction (metres, degrees)
-    predict_sigma_floor_m: float = 0.3
-    predict_sigma_floor_deg: float = 0.3
+    # joint coarse search over all frames of the building (common boresight/position error) ...
+    joint_coarse: bool = True
+    # ... at most this many frames (evenly spread) take part ...
+    joint_coarse_max_frames: int = 30
+    # ... on this pyramid level, over image shifts up to this radius (pixels; model samples up to
+    # this far outside the frame take part) and these depth offsets (shares of the median depth)
+    joint_coarse_level: int = 8
+    joint_coarse_radius_px: float = 320.0
+    joint_coarse_depth_steps: tuple[float, ...] = (-0.1, 0.0, 0.1)
+    # ... and rolls about the optical axis (degrees; boresight errors of several degrees)
+    joint_coarse_rolls_deg: tuple[float, ...] = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)
+    # per-frame coarse search radius after the joint one, pixels
+    frame_coarse_radius_px: float = 48.0
+    # per-frame deviation of the correction from its neighbours' (white noise, vibration)
+    frame_sigma_deg: float = 0.3
+    frame_sigma_m: float = 0.3
+    # neighbours further than this (Mahalanobis², per degree of freedom) from the prediction are
+    # outliers; an accepted frame this far from its prediction is refitted
+    outlier_gate: float = 9.0
+    # the regulariser of the prediction: this share of the prior's information
+    prediction_regulariser: float = 0.05
     # inheritance of the neighbours' correction (see the module docstring)
     inherit_min_neighbours: int = 3
-    inherit_max_scatter_px: float = 2.0
-    # run the second pass and inheritance at all
+    inherit_max_sigma_px: float = 1.0
+    # run the sequence level (second pass, inheritance) at all
     sequence: bool = True
 
 
@@ -129,80 +150,6 @@ def prior_information(prior: Pose, accuracy: Accuracy | None, options: Coregiste
     return info
 
 
-def _diag_information(sigma_rad: float, sigma_m: float) -> np.ndarray:
-    return np.diag([sigma_rad**-2] * 3 + [sigma_m**-2] * 3)
-
-
-def _roi(camera: Camera, pose: Pose, wireframe: Wireframe, raycaster: RayCaster, margin: float,
-         options: CoregisterOptions) -> tuple[int, int, int, int] | None:
-    """Pixel box around the visible wireframe at `pose`, grown by `margin` px; None when nothing is seen."""
-    vis = visible_wireframe(wireframe, camera, pose, raycaster, options.edges)
-    if len(vis.points) < options.fit.min_samples:
-        return None
-    uv, _ = pose.project(camera, vis.points)
-    lo = np.floor(uv.min(axis=0) - margin)
-    hi = np.ceil(uv.max(axis=0) + margin) + 1
-    u0, v0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
-    u1, v1 = min(int(hi[0]), camera.width), min(int(hi[1]), camera.height)
-    if u1 - u0 < 16 or v1 - v0 < 16:
-        return None
-    return u0, v0, u1, v1
-
-
-def _fit(camera: Camera, wireframe: Wireframe, raycaster: RayCaster, image: np.ndarray, prior: Pose,
-         info: np.ndarray, start: Pose, coarse: bool, options: CoregisterOptions) -> FrameFit:
-    fo = options.fit
-    margin = (fo.coarse_radius_px if coarse else fo.edge_radius_start_px) + fo.roi_margin_px
-    roi = _roi(camera, start, wireframe, raycaster, margin, options)
-    if roi is None:
-        return FrameFit(pose=start, accepted=False, reason="building not visible")
-    try:
-        feats = extract_features(image, options.features, roi)
-    except FeatureError as exc:
-        return FrameFit(pose=start, accepted=False, reason=str(exc))
-    return fit_frame(
-        camera, wireframe, raycaster, feats, prior, info, start, fo, options.edges, coarse=coarse
-    )
-
-
-def _reprojection_px(camera: Camera, a: Pose, b: Pose, X: np.ndarray) -> float:
-    """RMS pixel distance of points `X` `(N, 3)` projected with poses `a` and `b` (in front of both)."""
-    ua, za = a.project(camera, X)
-    ub, zb = b.project(camera, X)
-    ok = (za > 0.5) & (zb > 0.5) & np.isfinite(ua).all(axis=1) & np.isfinite(ub).all(axis=1)
-    if not ok.any():
-        return float("inf")
-    return float(np.sqrt(np.mean(np.sum((ua[ok] - ub[ok]) ** 2, axis=1))))
-
-
-def _predict(
-    j: int, times: np.ndarray, deltas: np.ndarray, accepted: np.ndarray, options: CoregisterOptions
-) -> tuple[np.ndarray, np.ndarray, int, bool] | None:
-    """Robust time-weighted median of the accepted corrections around frame `j`, leaving `j` out.
-
-    Returns (prediction `(6,)`, robust scatter `(6,)`, number of neighbours, neighbours on both
-    sides) or None when no accepted neighbour lies within the window.
-    """
-    dt = times - times[j]
-    nb = accepted & (np.abs(dt) <= options.window_s)
-    nb[j] = False
-    k = np.nonzero(nb)[0]
-    if len(k) == 0:
-        return None
-    w = np.exp(-0.5 * (dt[k] / options.time_sigma_s) ** 2)
-    pred = np.array([_weighted_median(deltas[k, c], w) for c in range(6)])
-    dev = np.abs(deltas[k] - pred)
-    scatter = 1.4826 * np.array([_weighted_median(dev[:, c], w) for c in range(6)])
-    both = bool(np.any(dt[k] < 0) and np.any(dt[k] > 0))
-    return pred, scatter, len(k), both
-
-
-def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
-    order = np.argsort(x)
-    cw = np.cumsum(w[order])
-    return float(x[order][np.searchsorted(cw, 0.5 * cw[-1])])
-
-
 def refine_building(
     camera: Camera,
     building: Building,
@@ -231,58 +178,103 @@ def refine_building(
         frame index -> `RefinedPose`; `pose` is the prior when `status` is `"prior"`.
     """
     frames = list(frames)
-    out: dict[int, RefinedPose] = {}
     if not frames:
-        return out
+        return {}
     try:
         wf = building_wireframe(building, options.edges)
     except WireframeError:
         return {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
-    images: dict[int, np.ndarray] = {}
-    fits: list[FrameFit] = []
-    for i in frames:
-        img = frame_source.load(i)
-        info = prior_information(prior[i], accuracy, options)
-        fits.append(_fit(camera, wf, raycaster, img, prior[i], info, prior[i], True, options))
-        if not fits[-1].accepted and options.sequence:
-            images[i] = img  # kept for the second pass (failures only)
-    accepted = np.array([f.accepted for f in fits])
+    images = {i: frame_source.load(i) for i in frames}
+    infos = {i: prior_information(prior[i], accuracy, options) for i in frames}
+    starts = dict(prior)
+    fo = options.fit
+    if options.joint_coarse and len(frames) > 1:
+        common = _joint_coarse(camera, wf, raycaster, frames, images, prior, options)
+        if common is not None:
+            starts = {i: apply_coarse(camera, prior[i], common, options.fit) for i in frames}
+            fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
+    fits = [
+        fit_frame(camera, wf, raycaster, images[i], prior[i], infos[i], starts[i], fo, options.edges,
+                  options.features, coarse=True)
+        for i in frames
+    ]
+    if not options.sequence:
+        return {i: _result(i, f, prior[i]) for i, f in zip(frames, fits, strict=True)}
     t = np.array([float(times[i]) if times is not None else float(i) for i in frames])
     deltas = np.array([pose_delta(prior[i], f.pose) for i, f in zip(frames, fits, strict=True)])
-    X = wf.vertices
-    final: list[tuple[Pose, str, float, int]] = []
+    usable = np.array([f.converged for f in fits])
+    frame_cov = frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m)
+    out: dict[int, RefinedPose] = {}
     for j, i in enumerate(frames):
         f = fits[j]
-        pred = _predict(j, t, deltas, accepted, options) if options.sequence else None
-        if f.accepted:
-            if pred is None:
-                final.append((f.pose, "refined", f.rms_px, f.matches))
-                continue
-            p_pose = apply_delta(prior[i], pred[0])
-            spread = _reprojection_px(camera, p_pose, apply_delta(p_pose, pred[1]), X)
-            gap = _reprojection_px(camera, f.pose, p_pose, X)
-            if gap <= max(options.outlier_gate_px, options.outlier_gate_sigma * spread):
-                final.append((f.pose, "refined", f.rms_px, f.matches))
-                continue
-            if i not in images:
-                images[i] = frame_source.load(i)
+        reg_delta = pose_delta(prior[i], starts[i])
+        pred = predict(j, t, deltas, fits, usable, frame_cov, options.prediction_regulariser * infos[i],
+                       reg_delta, options.window_s, options.time_sigma_s, options.outlier_gate)
         if pred is None:
-            final.append((prior[i], "prior", f.rms_px, f.matches))
+            out[i] = _result(i, f, prior[i])
             continue
-        delta, scatter, n_nb, both = pred
-        start = apply_delta(prior[i], delta)
-        s_rot = max(float(np.max(scatter[:3])), np.radians(options.predict_sigma_floor_deg))
-        s_pos = max(float(np.max(scatter[3:])), options.predict_sigma_floor_m)
-        info = _diag_information(2 * s_rot, 2 * s_pos)
-        f2 = _fit(camera, wf, raycaster, images[i], start, info, start, False, options)
+        cov = pred.covariance + frame_cov
+        r = deltas[j] - pred.delta
+        consistent = float(r @ np.linalg.solve(cov, r)) / 6.0 <= options.outlier_gate
+        if f.accepted and consistent:
+            out[i] = _result(i, f, prior[i])
+            continue
+        centre = apply_delta(prior[i], pred.delta)
+        start = f.pose if (f.converged and consistent) else centre
+        f2 = fit_frame(camera, wf, raycaster, images[i], centre, np.linalg.inv(cov), start, fo, options.edges,
+                       options.features, coarse=False)
         if f2.accepted:
-            final.append((f2.pose, "refined", f2.rms_px, f2.matches))
+            out[i] = _result(i, f2, prior[i])
             continue
-        spread = _reprojection_px(camera, start, apply_delta(start, scatter), X)
-        if n_nb >= options.inherit_min_neighbours and both and spread <= options.inherit_max_scatter_px:
-            final.append((start, "refined", float("nan"), 0))
+        sigma = _sigma_px(camera, centre, wf.vertices, pred.covariance)
+        if pred.neighbours >= options.inherit_min_neighbours and pred.both_sides and \
+                sigma <= options.inherit_max_sigma_px:
+            out[i] = RefinedPose(i, centre, "refined", float("nan"), 0)
         else:
-            final.append((prior[i], "prior", f.rms_px, f.matches))
-    for i, (pose, status, rms, matches) in zip(frames, final, strict=True):
-        out[i] = RefinedPose(frame=i, pose=pose, status=status, rms_px=float(rms), matches=int(matches))
+            out[i] = RefinedPose(i, prior[i], "prior", f.rms_px, f.matches)
     return out
+
+
+def _result(i: int, fit: FrameFit, prior: Pose) -> RefinedPose:
+    if fit.accepted:
+        return RefinedPose(i, fit.pose, "refined", fit.rms_px, fit.matches)
+    return RefinedPose(i, prior, "prior", fit.rms_px, fit.matches)
+
+
+def _sigma_px(camera: Camera, pose: Pose, X: np.ndarray, cov: np.ndarray) -> float:
+    """RMS predicted reprojection uncertainty (px) of points `X` `(N, 3)` in the frame for a pose
+    with covariance `cov` `(6, 6)`."""
+    uv, z, J = project_jacobian(camera, pose, X)
+    inside = (z > 0.5) & camera.in_image(uv)
+    if not inside.any():
+        return float("inf")
+    return float(np.sqrt(np.mean(np.einsum("nki,ij,nkj->n", J[inside], cov, J[inside]))))
+
+
+def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int],
+                  images: Mapping[int, np.ndarray], prior: Mapping[int, Pose],
+                  options: CoregisterOptions) -> tuple[np.ndarray, float, float, float] | None:
+    """Common coarse correction of (up to `joint_coarse_max_frames`) frames, see `joint_coarse`."""
+    fo = replace(options.fit, coarse_level=options.joint_coarse_level,
+                 coarse_radius_px=options.joint_coarse_radius_px,
+                 coarse_depth_steps=options.joint_coarse_depth_steps)
+    eo = replace(options.edges, image_margin_px=-options.joint_coarse_radius_px)
+    fe = replace(options.features, dt_levels=(options.joint_coarse_level,))
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), options.joint_coarse_max_frames))
+                     .round().astype(int))
+    poses, vis_list, feats_list = [], [], []
+    for k in pick:
+        i = frames[k]
+        vis = visible_wireframe(wf, camera, prior[i], raycaster, eo)
+        if len(vis.points) < fo.min_samples:
+            continue
+        try:
+            feats = extract_features(images[i], fe, None, points=False)
+        except FeatureError:
+            continue
+        poses.append(prior[i])
+        vis_list.append(vis)
+        feats_list.append(feats)
+    if not poses:
+        return None
+    return joint_coarse(camera, poses, vis_list, feats_list, fo, options.joint_coarse_rolls_deg)

@@ -23,13 +23,19 @@ are recovered before the local adjustment.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
 from workers.pipeline.camera import Camera
-from workers.pipeline.features import ImageFeatures
+from workers.pipeline.features import (
+    FeatureError,
+    FeatureOptions,
+    ImageFeatures,
+    extract_features,
+    with_points,
+)
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
@@ -50,6 +56,12 @@ class FrameFitOptions:
     # coarse stage: penalty per level pixel of shift, in level pixels of mean distance (favours
     # the nearest of equally good minima)
     coarse_shift_penalty: float = 0.01
+    # coarse stage: an image shift is explained by a camera rotation and a camera translation
+    # across the optical axis, split by these a-priori standard deviations (a shift of angle θ
+    # at depth Z: rotation share σ_r² / (σ_r² + (σ_t / Z)²)) — translation dominates at close
+    # range (drives), rotation from far away (flights)
+    coarse_rotation_sigma_deg: float = 2.0
+    coarse_translation_sigma_m: float = 3.0
     # fine stage: edge search radius along the normal, at the start and at the end, pixels
     edge_radius_start_px: float = 14.0
     edge_radius_min_px: float = 3.0
@@ -105,6 +117,11 @@ class FrameFit:
         covariance: `(6, 6)` of `(ω, dC)` (rad, m).
         corner_ids: `(M,)` wireframe vertex indices of matched corners (inliers).
         corner_uv: `(M, 2)` image points they were matched to.
+        image_points: `(K, 2)` all extracted interest points (Förstner, intersections) used.
+        converged: every acceptance test but the one on `sigma_px` passed (the fit found the
+            building; the frame alone may still leave some pose directions open).
+        information: `(6, 6)` information of the image observations alone (prior excluded),
+            divided by the variance factor.
     """
 
     pose: Pose
@@ -117,6 +134,9 @@ class FrameFit:
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     corner_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     corner_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    image_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    converged: bool = False
+    information: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
 
 # -- small rotation helpers ---------------------------------------------------------------------
@@ -153,6 +173,21 @@ def apply_delta(reference: Pose, delta: np.ndarray) -> Pose:
     return Pose(reference.R_world_from_cam @ so3_exp(d[:3]), reference.center + d[3:])
 
 
+def _distortion_jacobian(camera: Camera, ab: np.ndarray) -> np.ndarray:
+    """`∂ distort / ∂(a, b)` `(N, 2, 2)` of OpenCV's k1, k2, k3, p1, p2 model at normalised `ab` `(N, 2)`."""
+    a, b = ab[:, 0], ab[:, 1]
+    k1, k2, k3, p1, p2 = camera.k1, camera.k2, camera.k3, camera.p1, camera.p2
+    r2 = a * a + b * b
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r2
+    J = np.empty((len(ab), 2, 2))
+    J[:, 0, 0] = radial + 2 * a * a * d_radial + 2 * p1 * b + 6 * p2 * a
+    J[:, 0, 1] = 2 * a * b * d_radial + 2 * p1 * a + 2 * p2 * b
+    J[:, 1, 0] = J[:, 0, 1]
+    J[:, 1, 1] = radial + 2 * b * b * d_radial + 6 * p1 * b + 2 * p2 * a
+    return J
+
+
 def project_jacobian(camera: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World points `(N, 3)` -> (pixels `(N, 2)`, depth `(N,)`, `∂uv/∂δ` `(N, 2, 6)`)."""
     R = pose.R_world_from_cam
@@ -161,12 +196,7 @@ def project_jacobian(camera: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndar
     ab = np.stack([x / z, y / z], axis=1)
     uv = camera.pixel_from_normalized(ab)
     n = len(xc)
-    eps = 1e-6
-    D = np.empty((n, 2, 2))
-    for k in range(2):
-        step = np.zeros(2)
-        step[k] = eps
-        D[:, :, k] = (camera.distort(ab + step) - camera.distort(ab - step)) / (2 * eps)
+    D = _distortion_jacobian(camera, ab)
     D[:, 0, :] *= camera.fx
     D[:, 1, :] *= camera.fy
     dab = np.zeros((n, 2, 3))
@@ -184,84 +214,112 @@ def project_jacobian(camera: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndar
 
 
 # -- coarse stage -------------------------------------------------------------------------------
+def candidate_pose(pose: Pose, depth_m: float, roll_rad: float = 0.0) -> Pose:
+    """`pose` moved `depth_m` along its optical axis and rolled by `roll_rad` about it."""
+    R = pose.R_world_from_cam
+    return Pose(R @ so3_exp(np.array([0.0, 0.0, roll_rad])), pose.center + depth_m * R[:, 2])
+
+
+def coarse_scores(
+    camera: Camera, pose: Pose, vis: VisibleWireframe, feats: ImageFeatures, depths_m: np.ndarray,
+    options: FrameFitOptions, rolls_rad: np.ndarray | None = None,
+) -> np.ndarray:
+    """Mean truncated edge distance (level pixels) of the projected samples for every candidate
+    (depth offset along the optical axis `depths_m` `(D,)` × roll about it `rolls_rad` `(Q,)`,
+    default 0) and image shift -> `(D·Q, 2r+1, 2r+1)` (depth-major), r = coarse radius in level
+    pixels, shift `(j - r, i - r)` level pixels at `[c, i, j]`; the truncation value where a
+    candidate cannot be scored. Computed with `cv2.matchTemplate` on level `coarse_level`."""
+    s = options.coarse_level
+    R_lev = int(np.ceil(options.coarse_radius_px / s))
+    dt = feats.dt.get(s)
+    trunc = float(dt.max()) if dt is not None else 1.0
+    rolls = np.zeros(1) if rolls_rad is None else np.asarray(rolls_rad, dtype=np.float64)
+    cands = [(d, q) for d in depths_m for q in rolls]
+    out = np.full((len(cands), 2 * R_lev + 1, 2 * R_lev + 1), trunc, np.float32)
+    if dt is None or len(vis.points) == 0:
+        return out
+    u0, v0 = feats.roi[0], feats.roi[1]
+    padded = cv2.copyMakeBorder(dt, R_lev, R_lev, R_lev, R_lev, cv2.BORDER_CONSTANT, value=trunc)
+    for k, (d, q) in enumerate(cands):
+        uv, z = candidate_pose(pose, d, q).project(camera, vis.points)
+        ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
+        if ok.sum() < options.min_samples:
+            continue
+        ij = np.rint((uv[ok] - [u0, v0] - (s - 1) / 2) / s).astype(int)
+        lo = ij.min(axis=0)
+        size = ij.max(axis=0) - lo + 1
+        if np.any(size > np.array(dt.shape[::-1]) + 2 * R_lev - 1):
+            continue
+        T = np.zeros((size[1], size[0]), np.float32)
+        np.add.at(T, (ij[:, 1] - lo[1], ij[:, 0] - lo[0]), vis.weight[ok].astype(np.float32))
+        # window of the padded DT: the template's top-left at (lo + R_lev) ± R_lev
+        x0, y0 = lo[0], lo[1]
+        x1, y1 = lo[0] + size[0] + 2 * R_lev, lo[1] + size[1] + 2 * R_lev
+        px, py = max(-x0, 0), max(-y0, 0)
+        pw = cv2.copyMakeBorder(padded, py, max(y1 - padded.shape[0], 0), px, max(x1 - padded.shape[1], 0),
+                                cv2.BORDER_CONSTANT, value=trunc)
+        win = pw[y0 + py: y1 + py, x0 + px: x1 + px]
+        out[k] = cv2.matchTemplate(win, T, cv2.TM_CCORR) / max(float(T.sum()), 1e-9)
+    return out
+
+
+def shift_rotation(camera: Camera, ref_uv: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """Rotation vector ω `(3,)` (camera frame) with `R' = R exp(ω)` moving the image point `ref_uv`
+    `(2,)` by `shift` `(2,)` pixels (exact: the rotation between the two bearings)."""
+    b0 = camera.bearing(np.asarray(ref_uv, dtype=np.float64)[None])[0]
+    b1 = camera.bearing((np.asarray(ref_uv) + shift)[None])[0]
+    axis_q = np.cross(b1, b0)
+    sin_q = np.linalg.norm(axis_q)
+    ang = np.arctan2(sin_q, float(b0 @ b1))
+    return axis_q / sin_q * ang if sin_q > 1e-12 else np.zeros(3)
+
+
+def shift_pose(camera: Camera, pose: Pose, ref_uv: np.ndarray, shift: np.ndarray, depth: float,
+               options: FrameFitOptions) -> Pose:
+    """`pose` changed so that image point `ref_uv` `(2,)` of a surface at `depth` metres moves by
+    `shift` `(2,)` px, by a rotation and a translation across the optical axis (see
+    `coarse_rotation_sigma_deg`)."""
+    sr = np.radians(options.coarse_rotation_sigma_deg)
+    st = options.coarse_translation_sigma_m / max(depth, 1e-3)
+    a = sr**2 / (sr**2 + st**2)
+    shift = np.asarray(shift, dtype=np.float64)
+    w = shift_rotation(camera, ref_uv, a * shift)
+    # moving the camera by -t (camera frame) moves the image by f t / Z
+    t_cam = -np.array([(1 - a) * shift[0] * depth / camera.fx, (1 - a) * shift[1] * depth / camera.fy, 0.0])
+    R = pose.R_world_from_cam
+    return Pose(R @ so3_exp(w), pose.center + R @ t_cam)
+
+
+def shift_penalty(shape: tuple[int, ...], options: FrameFitOptions) -> np.ndarray:
+    """`(2r+1, 2r+1)` penalty favouring small shifts (level pixels of mean distance)."""
+    r = shape[-1] // 2
+    sy, sx = np.mgrid[-r:r + 1, -r:r + 1]
+    return (options.coarse_shift_penalty * np.hypot(sx, sy)).astype(np.float32)
+
+
 def coarse_search(
     camera: Camera, pose: Pose, vis: VisibleWireframe, feats: ImageFeatures, options: FrameFitOptions
 ) -> Pose:
     """Minimise the mean truncated edge distance of the projected samples over depth offsets and
     image shifts (level `coarse_level`); the shift is turned into an exact camera rotation."""
-    s = options.coarse_level
-    dt = feats.dt.get(s)
-    if dt is None or len(vis.points) == 0:
+    if len(vis.points) == 0:
         return pose
-    u0, v0 = feats.roi[0], feats.roi[1]
-    trunc = float(dt.max())
-    R_lev = int(np.ceil(options.coarse_radius_px / s))
-    padded = cv2.copyMakeBorder(dt, R_lev, R_lev, R_lev, R_lev, cv2.BORDER_CONSTANT, value=trunc)
     _, depth = pose.project(camera, vis.points)
     dmed = float(np.median(depth))
-    axis = pose.R_world_from_cam[:, 2]
-    best = (np.inf, pose.center, np.zeros(2), np.zeros(2))
-    wts = vis.weight
-    for step in options.coarse_depth_steps:
-        d = float(np.clip(step * dmed, -options.coarse_max_depth_m, options.coarse_max_depth_m))
-        cand = Pose(pose.R_world_from_cam, pose.center + d * axis)
-        uv, z = cand.project(camera, vis.points)
-        ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
-        if ok.sum() < options.min_samples:
-            continue
-        lev = (uv[ok] - [u0, v0] - (s - 1) / 2) / s
-        ij = np.rint(lev).astype(int)
-        lo = ij.min(axis=0)
-        hi = ij.max(axis=0)
-        size = hi - lo + 1
-        # the template must fit in the padded DT window around its position
-        if np.any(size > np.array(dt.shape[::-1]) + 2 * R_lev - 1):
-            continue
-        T = np.zeros((size[1], size[0]), np.float32)
-        np.add.at(T, (ij[:, 1] - lo[1], ij[:, 0] - lo[0]), wts[ok].astype(np.float32))
-        # window of the padded DT: template top-left at (lo + R_lev) ± R_lev
-        x0, y0 = lo[0], lo[1]  # = (lo + R_lev) - R_lev in padded coordinates
-        x1, y1 = lo[0] + size[0] + 2 * R_lev, lo[1] + size[1] + 2 * R_lev
-        # pad further if the window leaves the padded image
-        pw = cv2.copyMakeBorder(padded, max(-y0, 0), max(y1 - padded.shape[0], 0), max(-x0, 0),
-                                max(x1 - padded.shape[1], 0), cv2.BORDER_CONSTANT, value=trunc)
-        win = pw[y0 + max(-y0, 0): y1 + max(-y0, 0), x0 + max(-x0, 0): x1 + max(-x0, 0)]
-        res = cv2.matchTemplate(win, T, cv2.TM_CCORR) / max(float(T.sum()), 1e-9)
-        sy, sx = np.mgrid[-R_lev:R_lev + 1, -R_lev:R_lev + 1]
-        res = res + options.coarse_shift_penalty * np.hypot(sx, sy)
-        k = int(np.argmin(res))
-        iy, ix = divmod(k, res.shape[1])
-        if res[iy, ix] < best[0]:
-            shift = np.array([ix - R_lev, iy - R_lev], dtype=np.float64) * s
-            best = (float(res[iy, ix]), cand.center, shift, uv[ok].mean(axis=0))
-    if not np.isfinite(best[0]):
-        return pose
-    _, center, shift, ref = best
-    # rotation Q with Qᵀ b(ref) = b(ref + shift): R' = R Q
-    b0 = camera.bearing(ref[None])[0]
-    b1 = camera.bearing((ref + shift)[None])[0]
-    axis_q = np.cross(b1, b0)
-    sin_q = np.linalg.norm(axis_q)
-    ang = np.arctan2(sin_q, float(b0 @ b1))
-    w = axis_q / sin_q * ang if sin_q > 1e-12 else np.zeros(3)
-    return Pose(pose.R_world_from_cam @ so3_exp(w), center)
+    depths = np.clip(np.asarray(options.coarse_depth_steps) * dmed, -options.coarse_max_depth_m,
+                     options.coarse_max_depth_m)
+    scores = coarse_scores(camera, pose, vis, feats, depths, options)
+    scores = scores + shift_penalty(scores.shape, options)[None]
+    k, iy, ix = np.unravel_index(int(np.argmin(scores)), scores.shape)
+    r = scores.shape[-1] // 2
+    shift = np.array([ix - r, iy - r], dtype=np.float64) * options.coarse_level
+    moved = Pose(pose.R_world_from_cam, pose.center + depths[k] * pose.R_world_from_cam[:, 2])
+    uv, z = moved.project(camera, vis.points)
+    ref = np.nanmean(uv, axis=0)
+    return shift_pose(camera, moved, ref, shift, float(np.median(z)), options)
 
 
 # -- fine stage ---------------------------------------------------------------------------------
-def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples of `img` `(h, w)` at float pixel coordinates (clamped to the border)."""
-    h, w = img.shape
-    u = np.clip(u, 0, w - 1.001)
-    v = np.clip(v, 0, h - 1.001)
-    iu = u.astype(int)
-    iv = v.astype(int)
-    fu = u - iu
-    fv = v - iv
-    a = img[iv, iu] * (1 - fu) + img[iv, iu + 1] * fu
-    b = img[iv + 1, iu] * (1 - fu) + img[iv + 1, iu + 1] * fu
-    return a * (1 - fv) + b * fv
-
-
 def edge_search(
     feats: ImageFeatures, uv: np.ndarray, normal: np.ndarray, radius: float, options: FrameFitOptions
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -281,8 +339,9 @@ def edge_search(
     pv = uv[:, 1:2] - v0 + k[None, :] * normal[:, 1:2]
     h, w = feats.gx.shape
     inside = (pu >= 0) & (pu <= w - 1) & (pv >= 0) & (pv <= h - 1)
-    gx = _bilinear(feats.gx, pu, pv)
-    gy = _bilinear(feats.gy, pu, pv)
+    g = cv2.remap(feats.grad, pu.astype(np.float32), pv.astype(np.float32), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE)
+    gx, gy = g[..., 0].astype(np.float64), g[..., 1].astype(np.float64)
     gn = np.abs(gx * normal[:, 0:1] + gy * normal[:, 1:2])
     gm = np.hypot(gx, gy)
     cos_lim = np.cos(np.radians(options.edge_max_angle_deg))
@@ -329,29 +388,60 @@ def _match_corners(
     return j, d[np.arange(len(uv_c)), j] <= radius
 
 
+def frame_box(
+    camera: Camera, pose: Pose, vis: VisibleWireframe, margin: float
+) -> tuple[int, int, int, int] | None:
+    """Pixel box `(u0, v0, u1, v1)` around the projected samples grown by `margin`, clipped to the
+    frame; None when it is smaller than 16 px."""
+    uv, _ = pose.project(camera, vis.points)
+    uv = uv[np.isfinite(uv).all(axis=1)]
+    if len(uv) == 0:
+        return None
+    lo = np.floor(uv.min(axis=0) - margin)
+    hi = np.ceil(uv.max(axis=0) + margin) + 1
+    u0, v0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+    u1, v1 = min(int(hi[0]), camera.width), min(int(hi[1]), camera.height)
+    if u1 - u0 < 16 or v1 - v0 < 16:
+        return None
+    return u0, v0, u1, v1
+
+
 def fit_frame(
     camera: Camera,
     wireframe: Wireframe,
     raycaster: RayCaster,
-    feats: ImageFeatures,
+    image: np.ndarray,
     prior: Pose,
     prior_info: np.ndarray,
     start: Pose,
     options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
+    feature_options: FeatureOptions = FeatureOptions(),
     coarse: bool = True,
 ) -> FrameFit:
-    """Refine `start` against the frame's features; `prior` with information `prior_info` `(6, 6)`
-    (on `(ω, dC)`, rad⁻², m⁻²) is a weighted observation. See the module docstring."""
+    """Refine `start` against the frame `image` `(H, W)` float32; `prior` with information
+    `prior_info` `(6, 6)` (on `(ω, dC)`, rad⁻², m⁻²) is a weighted observation. See the module
+    docstring. Features are computed in a box around the projected wireframe only."""
     vis = visible_wireframe(wireframe, camera, start, raycaster, edge_options)
     if len(vis.points) < options.min_samples:
         return FrameFit(pose=start, accepted=False, reason="too few visible model edges")
+    margin = (options.coarse_radius_px if coarse else options.edge_radius_start_px) + options.roi_margin_px
+    roi = frame_box(camera, start, vis, margin)
+    if roi is None:
+        return FrameFit(pose=start, accepted=False, reason="building not in the frame")
+    try:
+        feats = extract_features(image, feature_options, roi, points=False)
+    except FeatureError as exc:
+        return FrameFit(pose=start, accepted=False, reason=str(exc))
     pose = start
     if coarse:
         pose = coarse_search(camera, start, vis, feats, options)
         vis2 = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
         if len(vis2.points) >= options.min_samples:
             vis = vis2
+    box = frame_box(camera, pose, vis, options.edge_radius_start_px + options.point_radius_start_px)
+    if box is not None:
+        feats = with_points(feats, box, feature_options)
     points = feats.points
     rms_prev = np.inf
     sig_e2 = options.sigma_edge_px**2
@@ -377,13 +467,14 @@ def fit_frame(
         inl = w_e > 0
         res = np.concatenate([off[inl], np.linalg.norm(rc[wc > 0], axis=1)]) if len(rc) else off[inl]
         rms_prev = float(np.sqrt(np.mean(res**2))) if len(res) else np.inf
-        small = np.linalg.norm(delta[:3]) < 2e-6 and np.linalg.norm(delta[3:]) < 2e-4
+        small = np.linalg.norm(delta[:3]) < 1e-5 and np.linalg.norm(delta[3:]) < 1e-3
         if small and R_e <= options.edge_radius_min_px + 1e-9:
             break
-    return _evaluate(
+    fit = _evaluate(
         camera, wireframe, raycaster, feats, prior, prior_info, start, pose, options, edge_options, sig_e2,
         sig_p2,
     )
+    return replace(fit, image_points=points)
 
 
 def _normal_equations(
@@ -474,19 +565,23 @@ def _evaluate(
     sigma_px = float(np.sqrt(np.mean(var))) if inside.any() else float("inf")
     d = pose_delta(start, pose)
     reason = ""
+    determined = sigma_px <= options.max_sigma_px
     if support < options.min_support:
         reason = f"edge support {support:.2f} < {options.min_support}"
     elif rms > options.max_rms_px:
         reason = f"rms {rms:.2f} px > {options.max_rms_px}"
-    elif sigma_px > options.max_sigma_px:
-        reason = f"pose not determined: sigma {sigma_px:.2f} px > {options.max_sigma_px}"
     elif int(inl_e.sum()) < options.min_edge_inliers or n_edges < options.min_edges:
         reason = f"too few inliers ({int(inl_e.sum())} samples, {n_edges} edges)"
     elif np.linalg.norm(d[3:]) > options.max_correction_m or np.degrees(np.linalg.norm(d[:3])) > \
             options.max_correction_deg:
         reason = "correction beyond the plausible range"
+    converged = not reason
+    if converged and not determined:
+        reason = f"pose not determined: sigma {sigma_px:.2f} px > {options.max_sigma_px}"
     return FrameFit(
         pose=pose,
+        converged=converged,
+        information=(H - prior_info) / s0,
         accepted=not reason,
         reason=reason,
         rms_px=rms,

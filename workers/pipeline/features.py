@@ -18,7 +18,7 @@ used for detection only. Nothing here knows the model.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -68,7 +68,9 @@ class FeatureOptions:
     # distance transforms are truncated at this many pixels of their own level
     dt_truncate: float = 12.0
     # pyramid levels (downsampling factors) of the distance transform
-    dt_levels: tuple[int, ...] = (1, 2, 4, 8)
+    dt_levels: tuple[int, ...] = (4,)
+    # percentiles are estimated on every n-th pixel in both directions (speed)
+    percentile_stride: int = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,6 +89,7 @@ class ImageFeatures:
         dt: level -> `(h_l, w_l)` float32 distance (in level pixels, truncated) to the nearest
             strong edge; level pixel `(i, j)` covers full-frame pixel `(u0 + s j + (s-1)/2, ...)`.
         edges: `(h, w)` uint8 strong-edge map of the ROI (255 = edge).
+        norm: `(h, w)` float32 contrast-normalised ROI (0..1).
     """
 
     forstner: np.ndarray
@@ -99,6 +102,16 @@ class ImageFeatures:
     grad_ref: float
     dt: dict[int, np.ndarray]
     edges: np.ndarray
+    norm: np.ndarray
+
+    @property
+    def grad(self) -> np.ndarray:
+        """`(h, w, 2)` float32 gradient `(gx, gy)` stacked (built once, for `cv2.remap`)."""
+        g = self.__dict__.get("_grad")
+        if g is None:
+            g = np.dstack([self.gx, self.gy])
+            object.__setattr__(self, "_grad", g)
+        return g
 
     @property
     def points(self) -> np.ndarray:
@@ -106,17 +119,22 @@ class ImageFeatures:
         return np.concatenate([self.forstner, self.intersections], axis=0)
 
 
-def normalize_contrast(image: np.ndarray, percentiles: tuple[float, float] = (0.5, 99.5)) -> np.ndarray:
-    """Percentile stretch of a float image `(H, W)` to float32 0..1 (clipped; NaN -> 0).
+def normalize_contrast(
+    image: np.ndarray, percentiles: tuple[float, float] = (0.5, 99.5), stride: int = 1
+) -> np.ndarray:
+    """Percentile stretch of a float image `(H, W)` to float32 0..1 (clipped; NaN -> 0); the
+    percentiles are taken on every `stride`-th pixel.
 
     >>> normalize_contrast(np.array([[0.0, 1.0], [2.0, 4.0]]), (0, 100)).tolist()
     [[0.0, 0.25], [0.5, 1.0]]
     """
     img = np.asarray(image, dtype=np.float32)
-    finite = np.isfinite(img)
-    if not finite.any():
+    sample = img[::stride, ::stride]
+    sample = sample[np.isfinite(sample)]
+    if sample.size == 0:
         return np.zeros(img.shape, np.float32)
-    lo, hi = np.percentile(img[finite], percentiles)
+    finite = np.isfinite(img)
+    lo, hi = np.percentile(sample, percentiles)
     span = float(hi - lo) if hi > lo else 1.0
     out = (np.where(finite, img, lo) - np.float32(lo)) / np.float32(span)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
@@ -257,8 +275,7 @@ def _distance_pyramid(edges: np.ndarray, options: FeatureOptions) -> dict[int, n
             e = edges
         else:
             hh, ww = max(h // lev, 1), max(w // lev, 1)
-            crop = edges[: hh * lev, : ww * lev]
-            e = crop.reshape(hh, lev, ww, lev).max(axis=(1, 3))
+            e = cv2.resize(edges[: hh * lev, : ww * lev], (ww, hh), interpolation=cv2.INTER_AREA)
         if not e.any():
             out[lev] = np.full(e.shape, options.dt_truncate, np.float32)
             continue
@@ -271,11 +288,13 @@ def extract_features(
     image: np.ndarray,
     options: FeatureOptions = FeatureOptions(),
     roi: tuple[int, int, int, int] | None = None,
+    points: bool = True,
 ) -> ImageFeatures:
     """All features of a frame `(H, W)` float32 physical values within `roi` `(u0, v0, u1, v1)`.
 
     The ROI is clipped to the frame; contrast normalisation uses the ROI's own percentiles.
-    Returned coordinates are full-frame pixels.
+    Returned coordinates are full-frame pixels. With `points=False` the point features (Förstner,
+    LSD, intersections) are left empty; `with_points` adds them later for a smaller box.
     """
     img = np.asarray(image)
     if img.ndim != 2:
@@ -287,29 +306,54 @@ def extract_features(
     if u1 - u0 < 8 or v1 - v0 < 8:
         raise FeatureError(f"region of interest {roi} is empty or smaller than 8x8 pixels inside {W}x{H}")
     sub = img[v0:v1, u0:u1].astype(np.float32, copy=False)
-    norm = normalize_contrast(sub, options.stretch_percentiles)
+    norm = normalize_contrast(sub, options.stretch_percentiles, options.percentile_stride)
     gx, gy = gradients(norm, options.smooth_sigma)
-    mag = np.hypot(gx, gy)
-    grad_ref = float(np.percentile(mag[::2, ::2], options.gradient_ref_percentile)) or 1e-6
-    fpts, fw = forstner_points(gx, gy, options)
-    segs = line_segments(_gauss(norm, 0.6), options)
-    inter = segment_intersections(segs, options)
+    st = options.percentile_stride
+    mag = np.hypot(gx[::st, ::st], gy[::st, ::st])
+    grad_ref = float(np.percentile(mag, options.gradient_ref_percentile)) or 1e-6
     # strong-edge map: Canny on the 8-bit smoothed image, thresholds relative to the ROI contrast
     img8 = np.clip(_gauss(norm, options.smooth_sigma) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     sobel_ref = grad_ref * 255.0 * 8.0  # Canny's Sobel aperture-3 magnitude of the same step
     edges = cv2.Canny(
         img8, options.edge_low_rel * sobel_ref, options.edge_high_rel * sobel_ref, L2gradient=True
     )
-    off = np.array([u0, v0], dtype=np.float64)
-    return ImageFeatures(
-        forstner=fpts + off if len(fpts) else np.zeros((0, 2)),
-        forstner_w=fw,
-        segments=segs + np.tile(off, 2) if len(segs) else np.zeros((0, 4)),
-        intersections=inter + off if len(inter) else np.zeros((0, 2)),
+    empty = np.zeros((0, 2))
+    feats = ImageFeatures(
+        forstner=empty,
+        forstner_w=np.zeros(0),
+        segments=np.zeros((0, 4)),
+        intersections=empty,
         roi=(u0, v0, u1, v1),
         gx=gx,
         gy=gy,
         grad_ref=grad_ref,
         dt=_distance_pyramid(edges, options),
         edges=edges,
+        norm=norm,
+    )
+    return with_points(feats, feats.roi, options) if points else feats
+
+
+def with_points(
+    feats: ImageFeatures, box: tuple[int, int, int, int], options: FeatureOptions = FeatureOptions()
+) -> ImageFeatures:
+    """`feats` with Förstner points, LSD segments and their intersections detected inside `box`
+    `(u0, v0, u1, v1)` (full-frame pixels, clipped to the features' ROI)."""
+    r0, r1 = feats.roi[:2], feats.roi[2:]
+    u0, v0 = max(int(box[0]), r0[0]), max(int(box[1]), r0[1])
+    u1, v1 = min(int(box[2]), r1[0]), min(int(box[3]), r1[1])
+    if u1 - u0 < 8 or v1 - v0 < 8:
+        return feats
+    sl = (slice(v0 - r0[1], v1 - r0[1]), slice(u0 - r0[0], u1 - r0[0]))
+    gx, gy = np.ascontiguousarray(feats.gx[sl]), np.ascontiguousarray(feats.gy[sl])
+    fpts, fw = forstner_points(gx, gy, options)
+    segs = line_segments(_gauss(np.ascontiguousarray(feats.norm[sl]), 0.6), options)
+    inter = segment_intersections(segs, options)
+    off = np.array([u0, v0], dtype=np.float64)
+    return replace(
+        feats,
+        forstner=fpts + off if len(fpts) else np.zeros((0, 2)),
+        forstner_w=fw,
+        segments=segs + np.tile(off, 2) if len(segs) else np.zeros((0, 4)),
+        intersections=inter + off if len(inter) else np.zeros((0, 2)),
     )
