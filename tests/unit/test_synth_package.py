@@ -73,6 +73,15 @@ def test_frames_are_picklable_and_deterministic(result):
     assert len(frames) == 15
 
 
+def test_manifest_crs_from_the_model_srs_name():
+    adv = procedural_block(2, seed=1, srs_name="urn:adv:crs:ETRS89_UTM32*DE_DHHN2016_NH")
+    res = synthesize(adv, SynthOptions(n_frames=1, buildings=1, camera=default_camera(32, 24)))
+    assert res.manifest.crs == "EPSG:25832"
+    local = procedural_block(2, seed=1, srs_name="my-local-grid")
+    res = synthesize(local, SynthOptions(n_frames=1, buildings=1, camera=default_camera(32, 24)))
+    assert res.manifest.crs == "model"
+
+
 def test_truth_file_errors(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"format": "something/1"}))

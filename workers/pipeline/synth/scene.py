@@ -55,7 +55,7 @@ class SynthOptions:
     errors: ErrorOptions = field(default_factory=ErrorOptions)
     thermal: ThermalOptions = field(default_factory=ThermalOptions)
     sensor: SensorOptions = field(default_factory=SensorOptions)
-    crs: str | None = None  # manifest crs; None: the buildings' srsName if it is "EPSG:n", else "model"
+    crs: str | None = None  # manifest crs; None: "EPSG:n" of the buildings' srsName, else "model"
     scene_radius_m: float | None = None  # render only buildings this close to the path; None: auto
     ground_z: float | None = None  # ground plane height; None: median base of the cluster
     n_gcps: int = 0  # ground control points (cluster building corners) with observations
@@ -116,11 +116,20 @@ class SynthResult:
 
 
 def _manifest_crs(buildings: Sequence[Building], crs: str | None) -> str:
+    """The manifest's `crs`: as given, else `EPSG:<horizontal code>` of the buildings' srsName
+    (URNs resolved by `db.crs`), else `"model"` (positions in model coordinates)."""
     if crs:
         return crs
     srs = next((b.srs_name for b in buildings if b.srs_name), None)
-    if srs and srs.upper().startswith("EPSG:"):
-        return srs
+    if srs:
+        from db.crs import UnknownCRSError, horizontal_epsg
+
+        try:
+            code = horizontal_epsg(srs)
+        except (UnknownCRSError, ValueError):
+            code = None
+        if code:
+            return f"EPSG:{code}"
     return "model"
 
 
