@@ -98,6 +98,7 @@ def synth(
     psf: float = typer.Option(0.6, "--psf", help="Gaussian blur sigma, px."),
     column_noise: float = typer.Option(0.03, "--column-noise", help="Fixed-pattern column noise, K."),
     vignetting: float = typer.Option(-0.3, "--vignetting", help="Offset at the corners, K."),
+    supersample: int = typer.Option(1, "--supersample", help="Rays per pixel = N² (area sampling)."),
     width: int = typer.Option(640, "--width", help="Image width, px."),
     image_height: int = typer.Option(512, "--image-height", help="Image height, px."),
     hfov: float = typer.Option(45.0, "--hfov", help="Horizontal field of view, deg."),
@@ -148,7 +149,11 @@ def synth(
             flight=flight,
             errors=errors,
             sensor=SensorOptions(
-                psf_sigma_px=psf, netd_k=netd, column_noise_k=column_noise, vignetting_k=vignetting
+                psf_sigma_px=psf,
+                netd_k=netd,
+                column_noise_k=column_noise,
+                vignetting_k=vignetting,
+                supersample=supersample,
             ),
             n_gcps=gcps,
             model_path=str(Path(model_path).resolve()) if model_path else None,

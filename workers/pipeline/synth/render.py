@@ -187,18 +187,22 @@ class Renderer:
     def radiance(self, pose: Pose) -> np.ndarray:
         """Ideal temperature image `(H, W)` float32 K (supersamples averaged, no sensor effects)."""
         H, W = self.camera.height, self.camera.width
+        if len(self._bearings) == 1:
+            return self._trace(pose, self._bearings[0])[0].reshape(H, W)
         acc = np.zeros(H * W, np.float64)
         for b in self._bearings:
-            T, _, _ = self._trace(pose, b)
-            acc += T
+            acc += self._trace(pose, b)[0]
         return (acc / len(self._bearings)).astype(np.float32).reshape(H, W)
 
     def labels(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         """What each pixel centre sees: label `(H, W)` int32 (polygon index, `SKY` or `GROUND`)
         and ray length `(H, W)` float64 metres (inf for sky)."""
         cam = self.camera
-        v, u = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
-        b = cam.bearing(np.stack([u.ravel(), v.ravel()], axis=-1))
+        if self.sensor.supersample == 1:
+            b = self._bearings[0]
+        else:
+            v, u = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
+            b = cam.bearing(np.stack([u.ravel(), v.ravel()], axis=-1)).astype(np.float32)
         _, label, t = self._trace(pose, b)
         return label.reshape(cam.height, cam.width), t.astype(np.float64).reshape(cam.height, cam.width)
 
