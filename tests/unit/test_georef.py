@@ -27,6 +27,7 @@ from workers.pipeline.georef import (
     model_positions,
     ned_from_body,
     prior_poses,
+    world_trajectory,
 )
 from workers.pipeline.sequence import FrameRecord, ImuSamples, Mounting, Radiometry, SequenceManifest
 
@@ -369,6 +370,9 @@ def test_prior_poses_with_time_delay_from_imu() -> None:
         np.testing.assert_allclose(poses[k].center, expected_c, atol=1e-6)
         _, _, z = axes(poses[k])
         np.testing.assert_allclose(z, [np.sin(h), np.cos(h), 0], atol=1e-9)
+    # the world trajectory, built once, gives the IMU reference point at any time
+    Pw, _ = world_trajectory(m, "EPSG:25832").at(tf - delay)
+    np.testing.assert_allclose(Pw, P0 + np.outer(tf - delay, [0, 10, 0]), atol=1e-6)
     # no delay: exactly the frames' own solution
     zero = prior_poses(m, "EPSG:25832")
     direct = camera_poses(m.frames[0].position[None], m.frames[0].attitude_deg[None], m.mounting)[0]

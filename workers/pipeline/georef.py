@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pyproj
@@ -54,6 +55,7 @@ __all__ = [
     "ned_from_body",
     "prior_poses",
     "transform_positions",
+    "world_trajectory",
 ]
 
 #: `(3, 3)` NED (x north, y east, z down) -> world (x east, y north, z up).
@@ -333,6 +335,14 @@ class Trajectory:
         """The high-rate IMU solution (positions in the manifest's `crs`)."""
         return cls.from_samples(imu.time, imu.position, imu.attitude_deg)
 
+    @cached_property
+    def _rotations(self) -> Rotation:
+        return Rotation.from_matrix(self.R_ned_from_body)
+
+    @cached_property
+    def _slerp(self) -> Slerp:
+        return Slerp(self.times, self._rotations)
+
     def with_positions(self, positions: np.ndarray) -> Trajectory:
         """The same trajectory with positions replaced (e.g. transformed into the world CRS)."""
         return Trajectory(self.times, positions, self.R_ned_from_body)
@@ -361,11 +371,11 @@ class Trajectory:
         ta, tb = self.times[i], self.times[i + 1]
         f = (q - ta) / (tb - ta)
         P = (1.0 - f)[:, None] * self.positions[i] + f[:, None] * self.positions[i + 1]
-        rot = Rotation.from_matrix(self.R_ned_from_body)
+        rot = self._rotations
         inside = (f >= 0.0) & (f <= 1.0)
         R = np.empty((len(q), 3, 3))
         if np.any(inside):
-            R[inside] = Slerp(self.times, rot)(np.clip(q[inside], t0, t1)).as_matrix()
+            R[inside] = self._slerp(np.clip(q[inside], t0, t1)).as_matrix()
         if np.any(~inside):
             ra, rb = rot[i[~inside]], rot[i[~inside] + 1]
             delta = (ra.inv() * rb).as_rotvec()  # body-frame increment over the segment
@@ -376,8 +386,9 @@ class Trajectory:
         return P, R
 
 
-def _world_trajectory(manifest: SequenceManifest, model_crs: str | pyproj.CRS | None) -> Trajectory:
-    """IMU trajectory (or the frames' when there is no IMU) with positions in world coordinates."""
+def world_trajectory(manifest: SequenceManifest, model_crs: str | pyproj.CRS | None) -> Trajectory:
+    """IMU trajectory (or the frames' when there is no IMU) with positions in world coordinates
+    (model CRS, vertical offset applied). Build it once when querying many time delays."""
     traj = Trajectory.from_imu(manifest.imu) if manifest.imu is not None else Trajectory.from_frames(manifest)
     return traj.with_positions(
         transform_positions(traj.positions, manifest.crs, model_crs, manifest.vertical_offset_m)
@@ -402,7 +413,7 @@ def prior_poses(
         P = model_positions(manifest, model_crs)
         R_nb = ned_from_body(np.array([f.attitude_deg for f in manifest.frames]).reshape(-1, 3))
     else:
-        traj = _world_trajectory(manifest, model_crs)
+        traj = world_trajectory(manifest, model_crs)
         t = np.array([f.time for f in manifest.frames], dtype=np.float64) - float(time_delay_s)
         P, R_nb = traj.at(t, max_extrapolation_s=abs(float(time_delay_s)))
     gamma = _convergence(manifest, model_crs, P)
