@@ -13,6 +13,7 @@ from workers.pipeline.model_edges import (
     WALL,
     WireframeError,
     building_wireframe,
+    mesh_wireframe,
     visible_wireframe,
 )
 from workers.pipeline.raycast import RayCaster, build_scene_mesh
@@ -55,6 +56,18 @@ def test_split_wall_crease_is_dropped_and_t_junction_merged():
     vertical = np.abs(d[:, 2]) > 1
     assert not np.any(vertical & (np.abs(mid[:, 0] - 4) < 1e-6))
     assert len(wf.corners) == 8  # the split points are collinear: no corner
+
+
+def test_scene_mesh_wireframe_recovers_the_outlines_of_all_buildings():
+    a = box_building("A", 0, 0, 10, 8, 6, ridge=2)
+    b = box_building("B", 20, 0, 6, 6, 4)
+    wf = building_wireframe(a)
+    scene = mesh_wireframe(build_scene_mesh([a, b]))
+    # triangulation diagonals are gone: the outlines of both buildings remain
+    assert len(scene.edges) == len(wf.edges) + 12
+    assert len(scene.corners) == len(wf.corners) + 8
+    with pytest.raises(WireframeError):
+        mesh_wireframe(build_scene_mesh([]))
 
 
 def test_empty_building_is_refused():

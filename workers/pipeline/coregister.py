@@ -34,6 +34,7 @@ matched; `rms_px` is the RMS of inlier residuals (edge-normal distances and corn
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -56,6 +57,7 @@ from workers.pipeline.model_edges import (
     Wireframe,
     WireframeError,
     building_wireframe,
+    mesh_wireframe,
     visible_wireframe,
 )
 from workers.pipeline.pose import Pose
@@ -95,11 +97,15 @@ class CoregisterOptions:
     # this far outside the frame take part) and these depth offsets (shares of the median depth)
     joint_coarse_level: int = 8
     joint_coarse_radius_px: float = 320.0
-    joint_coarse_depth_steps: tuple[float, ...] = (-0.1, 0.0, 0.1)
+    joint_coarse_depth_steps: tuple[float, ...] = (0.0,)
+    # ... with the wireframe of the whole scene of the ray caster (the building and its
+    # neighbours: a row of similar houses is no longer ambiguous) or of the building alone ...
+    joint_coarse_scene: bool = True
     # ... and rolls about the optical axis (degrees; boresight errors of several degrees)
     joint_coarse_rolls_deg: tuple[float, ...] = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)
-    # per-frame coarse search radius after the joint one, pixels
-    frame_coarse_radius_px: float = 48.0
+    # per-frame coarse search radius after the joint one, pixels (0: none; the per-frame search
+    # sees one building only and may jump to a similar neighbour)
+    frame_coarse_radius_px: float = 0.0
     # per-frame deviation of the correction from its neighbours' (white noise, vibration)
     frame_sigma_deg: float = 0.3
     frame_sigma_m: float = 0.3
@@ -188,14 +194,17 @@ def refine_building(
     infos = {i: prior_information(prior[i], accuracy, options) for i in frames}
     starts = dict(prior)
     fo = options.fit
-    if options.joint_coarse and len(frames) > 1:
+    coarse = True
+    if options.joint_coarse:
         common = _joint_coarse(camera, wf, raycaster, frames, images, prior, options)
         if common is not None:
+            # the common correction is a sequence-level estimate: pass 1 is centred on it
             starts = {i: apply_coarse(camera, prior[i], common, options.fit) for i in frames}
             fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
+            coarse = options.frame_coarse_radius_px > 0
     fits = [
-        fit_frame(camera, wf, raycaster, images[i], prior[i], infos[i], starts[i], fo, options.edges,
-                  options.features, coarse=True)
+        fit_frame(camera, wf, raycaster, images[i], starts[i], infos[i], starts[i], fo, options.edges,
+                  options.features, coarse=coarse)
         for i in frames
     ]
     if not options.sequence:
@@ -260,6 +269,9 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
                  coarse_depth_steps=options.joint_coarse_depth_steps)
     eo = replace(options.edges, image_margin_px=-options.joint_coarse_radius_px)
     fe = replace(options.features, dt_levels=(options.joint_coarse_level,))
+    if options.joint_coarse_scene and getattr(raycaster, "mesh", None) is not None:
+        with contextlib.suppress(WireframeError):
+            wf = mesh_wireframe(raycaster.mesh, options.edges)
     pick = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), options.joint_coarse_max_frames))
                      .round().astype(int))
     poses, vis_list, feats_list = [], [], []

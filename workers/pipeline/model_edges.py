@@ -29,7 +29,7 @@ from workers.pipeline.camera import Camera
 from workers.pipeline.citymodel import Building
 from workers.pipeline.geometry import fit_plane, open_ring
 from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.raycast import RayCaster, SceneMesh
 
 ROOF, WALL, GROUND = 0, 1, 2
 EDGE_CLASSES: tuple[str, ...] = ("roof", "wall", "ground")
@@ -188,14 +188,53 @@ def building_wireframe(building: Building, options: EdgeOptions = EdgeOptions())
     idx = np.concatenate([s + np.arange(len(p)) for s, p in zip(starts, ring_pts, strict=True)])
     nxt = np.concatenate([s + np.roll(np.arange(len(p)), -1) for s, p in zip(starts, ring_pts, strict=True)])
     owner = np.concatenate([np.full(len(p), k) for k, p in zip(ring_poly, ring_pts, strict=True)])
+    return _wireframe(building.id, pts, idx, nxt, owner, np.asarray(normals), classes, options)
+
+
+def mesh_wireframe(
+    mesh: SceneMesh, options: EdgeOptions = EdgeOptions(), max_split: int = 2_000_000
+) -> Wireframe:
+    """The merged wireframe of every polygon in a `SceneMesh` (e.g. a building and its neighbours):
+    the polygon outlines recovered from the triangles (edges used once within their polygon).
+    Surface classes are unknown: edges of upward-facing polygons count as roof edges. T-junction
+    splitting is skipped when edges × vertices exceeds `max_split`."""
+    tri = np.asarray(mesh.triangles, dtype=np.int64)
+    if len(tri) == 0:
+        raise WireframeError("scene mesh has no triangles")
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    poly = np.tile(np.asarray(mesh.triangle_polygon, dtype=np.int64), 3)
+    key = np.concatenate([poly[:, None], np.sort(e, axis=1)], axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    once = counts[inv.reshape(-1)] == 1
+    e, poly = e[once], poly[once]
+    pts = mesh.vertices.astype(np.float64) + mesh.origin
+    normals = np.asarray(mesh.polygon_normals, dtype=np.float64)
+    classes = ["unclassified"] * len(normals)
+    return _wireframe("scene", pts, e[:, 0], e[:, 1], poly, normals, classes, options, max_split)
+
+
+def _wireframe(
+    wid: str,
+    pts: np.ndarray,
+    idx: np.ndarray,
+    nxt: np.ndarray,
+    owner: np.ndarray,
+    poly_normals: np.ndarray,
+    classes: list[str],
+    options: EdgeOptions,
+    max_split: int | None = None,
+) -> Wireframe:
+    """Merge segments `pts[idx] - pts[nxt]` of polygons `owner` (normals `(P, 3)`, classes) into a
+    classified wireframe (see the module docstring)."""
     verts, label = _merge_vertices(pts, options.merge_tolerance_m)
     edges = np.stack([label[idx], label[nxt]], axis=1)
     keep = edges[:, 0] != edges[:, 1]
-    edges, owner = _split_at_vertices(verts, edges[keep], owner[keep], options.merge_tolerance_m)
+    edges, owner = edges[keep], owner[keep]
+    if max_split is None or len(edges) * len(verts) <= max_split:
+        edges, owner = _split_at_vertices(verts, edges, owner, options.merge_tolerance_m)
     key = np.sort(edges, axis=1)
     uniq, inv = np.unique(key, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
-    poly_normals = np.asarray(normals)
     E = len(uniq)
     edge_normals = np.zeros((E, 2, 3))
     n_adj = np.zeros(E, int)
@@ -224,7 +263,7 @@ def building_wireframe(building: Building, options: EdgeOptions = EdgeOptions())
     weights = np.asarray(options.class_weights, dtype=np.float64)[cls]
     corners = _corners(verts, uniq, options.corner_min_angle_deg)
     return Wireframe(
-        building_id=building.id,
+        building_id=wid,
         vertices=verts,
         edges=uniq,
         edge_class=cls,
