@@ -15,6 +15,8 @@ a ray that hits neither the model nor the ground sees the sky.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -31,6 +33,28 @@ from workers.pipeline.synth.thermal import ThermalScene
 SKY, GROUND = -1, -2
 
 RADIOMETRY = Radiometry(unit="K", scale=0.01, offset=0.0)
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _parallel_temperature(
+    thermal: ThermalScene, x: np.ndarray, y: np.ndarray, z: np.ndarray, p: np.ndarray
+) -> np.ndarray:
+    """`thermal.temperature_xyz` split over the CPU cores (numpy releases the GIL in its loops)."""
+    global _POOL
+    n_threads = min(os.cpu_count() or 1, 4)
+    n = len(p)
+    if n_threads < 2 or n < 50_000:
+        return thermal.temperature_xyz(x, y, z, p)
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="synth-render")
+    edges = np.linspace(0, n, n_threads + 1).astype(int)
+    parts = [(edges[i], edges[i + 1]) for i in range(n_threads)]
+    futures = [_POOL.submit(thermal.temperature_xyz, x[a:b], y[a:b], z[a:b], p[a:b]) for a, b in parts[1:]]
+    a, b = parts[0]
+    first = thermal.temperature_xyz(x[a:b], y[a:b], z[a:b], p[a:b])
+    return np.concatenate([first, *(f.result() for f in futures)])
 
 
 def default_camera(width: int = 640, height: int = 512, hfov_deg: float = 45.0) -> Camera:
@@ -172,7 +196,7 @@ class Renderer:
         if len(on):
             ton = t[on]
             x, y, z = cx + ton * dx[on], cy + ton * dy[on], cz + ton * dz[on]
-            T[on] = self.thermal.temperature_xyz(x, y, z, label[on])
+            T[on] = _parallel_temperature(self.thermal, x, y, z, label[on])
         ig = np.flatnonzero(ground)
         if len(ig):
             tgr = t[ig]

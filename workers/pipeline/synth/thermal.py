@@ -368,7 +368,9 @@ class ThermalScene:
         self, x: np.ndarray, y: np.ndarray, z: np.ndarray, polygon_index: np.ndarray
     ) -> np.ndarray:
         """`temperature_local` with the coordinates as three `(N,)` float32 arrays."""
-        p = np.asarray(polygon_index, dtype=np.intp).reshape(-1)
+        p = np.asarray(polygon_index).reshape(-1)
+        if p.dtype != np.int32:
+            p = p.astype(np.intp)
         if not (len(p) == len(x) == len(y) == len(z)):
             raise SynthError(f"temperature: {len(x)} points but {len(p)} polygon indices")
         if len(p) == 0:
