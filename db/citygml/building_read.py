@@ -108,6 +108,19 @@ class _Draft:
 
 _MEMBER_TAGS = frozenset({f"{{{GML_NS}}}surfaceMember", f"{{{GML32_NS}}}surfaceMember"})
 _POLYGON_TAGS = frozenset({f"{{{GML_NS}}}Polygon", f"{{{GML32_NS}}}Polygon"})
+_POSLIST_TAGS = frozenset({f"{{{GML_NS}}}posList", f"{{{GML32_NS}}}posList"})
+_LINEAR_RING_TAGS = frozenset({f"{{{GML_NS}}}LinearRing", f"{{{GML32_NS}}}LinearRing"})
+#: Ring property tags -> True for the exterior, False for an interior (GML 3 and GML 2 names).
+_RING_ROLES: dict[str, bool] = {
+    f"{{{ns}}}{name}": role
+    for ns in (GML_NS, GML32_NS)
+    for name, role in (
+        ("exterior", True),
+        ("interior", False),
+        ("outerBoundaryIs", True),
+        ("innerBoundaryIs", False),
+    )
+}
 _PROP_LOD: dict[object, int] = {}
 
 
@@ -151,6 +164,16 @@ def _numbers(text: str | None, el: etree._Element) -> np.ndarray:
 
 def _ring_coords(ring: etree._Element, dim: int) -> np.ndarray:
     """`gml:LinearRing` -> `(N, 3)` float64 from `posList`, `pos` or `coordinates`."""
+    if len(ring) == 1 and ring[0].tag in _POSLIST_TAGS:  # fast path: one posList
+        pl = ring[0]
+        d = pl.get("srsDimension") or ring.get("srsDimension")
+        if (int(d) if d else dim) == 3:
+            try:
+                values = np.array((pl.text or "").split(), dtype=np.float64)
+            except ValueError:
+                values = _numbers(pl.text, pl)
+            if len(values) % 3 == 0:
+                return values.reshape(-1, 3)
     d = ring.get("srsDimension")
     dim = int(d) if d else dim
     parts: list[np.ndarray] = []
@@ -196,11 +219,11 @@ class _BuildingReader:
         rings: list[tuple[str | None, np.ndarray]] = []
         interiors: list[tuple[str | None, np.ndarray]] = []
         for ch in el:
-            ln = local(ch.tag)
-            if ln not in ("exterior", "interior", "outerBoundaryIs", "innerBoundaryIs"):
+            ln = _RING_ROLES.get(ch.tag)
+            if ln is None:
                 continue
             for ring in ch:
-                if local(ring.tag) != "LinearRing":
+                if ring.tag not in _LINEAR_RING_TAGS:
                     if isinstance(ring.tag, str):
                         raise CityGMLError(f"unsupported ring type <{local(ring.tag)}>", line=ring.sourceline)
                     continue
@@ -210,7 +233,7 @@ class _BuildingReader:
                 rid = get_id(ring, self.id_attr)
                 if rid:
                     self.scope.ids.add(rid)
-                (rings if ln in ("exterior", "outerBoundaryIs") else interiors).append((rid, coords))
+                (rings if ln else interiors).append((rid, coords))
         if len(rings) != 1:
             raise CityGMLError(f"<{local(el.tag)}> needs exactly one exterior ring", line=el.sourceline)
         pid = get_id(el, self.id_attr)
