@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from os import PathLike
 from pathlib import Path
@@ -95,6 +95,8 @@ class ImportSummary:
     replaced: bool
     #: peak RSS of the reader process (MB) when the file was read in parallel.
     reader_peak_rss_mb: float | None = None
+    #: seconds: waiting for the reader, writing batches, finishing, rebuilding spatial indexes.
+    timings_s: dict[str, float] = field(default_factory=dict)
 
 
 def model_srid(srs_name: str | None) -> int:
@@ -250,6 +252,7 @@ def import_citygml(
     counts = {"buildings": 0, "parts": 0, "surfaces": 0, "appearances": len(header.appearances)}
     late: list[Appearance] = []
     ordinal = 0
+    timings = {"wait_for_reader": 0.0, "write": 0.0}
     try:
         if defer:
             drop_spatial_indexes(engine)
@@ -260,28 +263,38 @@ def import_citygml(
             huge_tree=opts.huge_tree,
             parallel=opts.parallel_read,
         )
+        t_wait = time.perf_counter()
         for kind, obj in stream:
+            timings["wait_for_reader"] += time.perf_counter() - t_wait
             if kind == "appearance":
                 late.append(obj)
+                t_wait = time.perf_counter()
                 continue
+            t_write = time.perf_counter()
             with engine.begin() as conn:
                 _write_lines(conn, obj, model_id, ordinal)
+            timings["write"] += time.perf_counter() - t_write
             ordinal += len(obj.building_tails)
             n_parts = sum(obj.is_part)
             counts["buildings"] += len(obj.is_part) - n_parts
             counts["parts"] += n_parts
             counts["surfaces"] += len(obj.surface_tails)
             counts["appearances"] += sum(len(a) for _, a in obj.appearances)
+            t_wait = time.perf_counter()
         counts["appearances"] += len(late)
+        t_fin = time.perf_counter()
         with engine.begin() as conn:
             _finish_model(conn, model_id, counts, late)
+        timings["finish"] = time.perf_counter() - t_fin
     except BaseException:
         with engine.begin() as conn:
             delete_model(conn, model_id)
         raise
     finally:
         if defer:
+            t_idx = time.perf_counter()
             create_spatial_indexes(engine)
+            timings["spatial_indexes"] = time.perf_counter() - t_idx
     return ImportSummary(
         model_id=model_id,
         name=name,
@@ -294,4 +307,5 @@ def import_citygml(
         seconds=time.perf_counter() - t0,
         replaced=replaced,
         reader_peak_rss_mb=stream.peak_rss_mb,
+        timings_s={k: round(v, 3) for k, v in timings.items()},
     )

@@ -130,7 +130,9 @@ class Surface(Base):
     )
 
     id: Mapped[int] = mapped_column(BigInteger, primary_key=True)
-    city_model_id: Mapped[int] = mapped_column(ForeignKey("city_model.id", ondelete="CASCADE"))
+    #: the model of the owning building (no foreign key: implied by `building_id`, and checking it
+    #: doubled the cost of bulk loads; migration 0003).
+    city_model_id: Mapped[int] = mapped_column(Integer)
     building_id: Mapped[int] = mapped_column(ForeignKey("building.id", ondelete="CASCADE"))
     ordinal: Mapped[int] = mapped_column(Integer)
     gml_id: Mapped[str] = mapped_column(Text)
