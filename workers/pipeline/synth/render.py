@@ -41,19 +41,21 @@ _POOL: ThreadPoolExecutor | None = None
 def _parallel_temperature(
     thermal: ThermalScene, x: np.ndarray, y: np.ndarray, z: np.ndarray, p: np.ndarray
 ) -> np.ndarray:
-    """`thermal.temperature_xyz` split over the CPU cores (numpy releases the GIL in its loops)."""
+    """`thermal.temperature_xyz_unchecked` split over the CPU cores (numpy releases the GIL in
+    its loops); `p` are valid polygon indices (ray-cast labels)."""
     global _POOL
     n_threads = min(os.cpu_count() or 1, 4)
     n = len(p)
     if n_threads < 2 or n < 50_000:
-        return thermal.temperature_xyz(x, y, z, p)
+        return thermal.temperature_xyz_unchecked(x, y, z, p)
     if _POOL is None:
         _POOL = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="synth-render")
     edges = np.linspace(0, n, n_threads + 1).astype(int)
     parts = [(edges[i], edges[i + 1]) for i in range(n_threads)]
-    futures = [_POOL.submit(thermal.temperature_xyz, x[a:b], y[a:b], z[a:b], p[a:b]) for a, b in parts[1:]]
+    ev = thermal.temperature_xyz_unchecked
+    futures = [_POOL.submit(ev, x[a:b], y[a:b], z[a:b], p[a:b]) for a, b in parts[1:]]
     a, b = parts[0]
-    first = thermal.temperature_xyz(x[a:b], y[a:b], z[a:b], p[a:b])
+    first = ev(x[a:b], y[a:b], z[a:b], p[a:b])
     return np.concatenate([first, *(f.result() for f in futures)])
 
 

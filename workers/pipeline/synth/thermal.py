@@ -377,6 +377,13 @@ class ThermalScene:
             return np.zeros(0, np.float32)
         if p.min() < 0 or p.max() >= len(self.polygon_ids):
             raise SynthError("temperature: polygon_index out of range")
+        return self.temperature_xyz_unchecked(x, y, z, p)
+
+    def temperature_xyz_unchecked(
+        self, x: np.ndarray, y: np.ndarray, z: np.ndarray, p: np.ndarray
+    ) -> np.ndarray:
+        """`temperature_xyz` for `(N,)` float32 coordinates and valid int32/intp polygon indices
+        `(N,)` (the renderer's labels), without input checks."""
         o = self.options
         g = _gather_rows(self._tab, p)  # (K, N) contiguous rows
         T = g[8].copy()
