@@ -4,10 +4,11 @@ separate reader process so that parsing overlaps with writing to the database.
 In: a CityGML path. Out: `("batch", transform([Building, ...]))` with up to `batch_size` top-level
 buildings (parts nested), in document order (the transform runs where the file is read), and
 `("appearance", Appearance)` for CityModel-level appearances that follow the buildings. With
-`parallel=True` a forked reader process parses the file and sends the transformed batches through
-a bounded queue (at most `queue_batches` in flight, so memory stays bounded); its errors are
-raised here (`CityGMLError` for a bad file). `peak_rss_mb` of the reader process is available
-after the stream ends.
+`parallel=True` a forked reader process parses the file (it never touches the database
+connections it inherits and leaves with `os._exit`, as multiprocessing does) and sends the
+transformed batches through a bounded queue (at most `queue_batches` in flight, so memory stays
+bounded); its errors are raised here (`CityGMLError` for a bad file). `peak_rss_mb` of the reader
+process is available after the stream ends.
 """
 
 from __future__ import annotations

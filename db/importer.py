@@ -67,8 +67,9 @@ class ImportOptions:
             count, planarity, area, unclosed rings), "full" (`db.citygml.checks.check_building`,
             adding self-intersection and outward wall normals; about 20 ms per building) or "none".
         huge_tree: passed to the reader (lift libxml2 limits for unusual files).
-        parallel_read: parse the file in a forked reader process while this one writes (falls
-            back to reading in-process inside daemonic workers).
+        parallel_read: parse the file in a separate reader process while this one writes (None:
+            for files larger than `parallel_above_bytes`; always in-process inside daemonic
+            workers, which may not have children).
     """
 
     batch_size: int = 250
@@ -76,7 +77,8 @@ class ImportOptions:
     defer_above_bytes: int = 100 * 1024**2
     checks: str = "fast"
     huge_tree: bool = False
-    parallel_read: bool = True
+    parallel_read: bool | None = None
+    parallel_above_bytes: int = 16 * 1024**2
 
 
 @dataclass(frozen=True)
@@ -261,7 +263,11 @@ def import_citygml(
             batch_size=opts.batch_size,
             transform=partial(batch_lines, srid=srid, checks=opts.checks),
             huge_tree=opts.huge_tree,
-            parallel=opts.parallel_read,
+            parallel=(
+                opts.parallel_read
+                if opts.parallel_read is not None
+                else path.stat().st_size > opts.parallel_above_bytes
+            ),
         )
         t_wait = time.perf_counter()
         for kind, obj in stream:
