@@ -11,6 +11,7 @@ import pytest
 from sqlalchemy import text
 
 import db.importer as importer_mod
+from db.citygml.names import CityGMLError
 from db.citygml.reader import read_model
 from db.citygml.validate import validate_citygml2
 from db.crs import horizontal_epsg
@@ -232,3 +233,32 @@ def test_deferred_indexes_and_bbox_export(db_engine, tmp_path) -> None:
     _, back = read_model(out.path)
     assert [b.id for b in back] == expected
     assert validate_citygml2(out.path) == []
+
+
+def test_parallel_reader_writes_the_same_rows(db_engine, tmp_path) -> None:
+    path = DATA / "nrw-tile-5659-citygml1-lod2.gml"
+    seq = import_citygml(
+        db_engine, path, name="par-seq", options=ImportOptions(parallel_read=False, batch_size=30)
+    )
+    par = import_citygml(
+        db_engine, path, name="par-fork", options=ImportOptions(parallel_read=True, batch_size=30)
+    )
+    assert (par.buildings, par.parts, par.surfaces) == (seq.buildings, seq.parts, seq.surfaces)
+    assert par.reader_peak_rss_mb is not None and seq.reader_peak_rss_mb is None
+    sql = (
+        "SELECT b.gml_id, b.ordinal, p.gml_id, s.gml_id, s.ordinal, ST_AsBinary(s.geometry), s.ring_ids, "
+        "s.checks "
+        "FROM surface s JOIN building b ON b.id = s.building_id LEFT JOIN building p ON p.id = b.parent_id "
+        "WHERE s.city_model_id = :m ORDER BY b.ordinal, s.ordinal"
+    )
+    with db_engine.connect() as c:
+        rows_seq = c.execute(text(sql), {"m": seq.model_id}).all()
+        rows_par = c.execute(text(sql), {"m": par.model_id}).all()
+    assert len(rows_seq) == seq.surfaces and rows_par == rows_seq
+    # a broken file: the reader process's error arrives here and nothing is left
+    broken = tmp_path / "broken.gml"
+    data = path.read_bytes()
+    broken.write_bytes(data[: len(data) // 2] + b"<bldg:Building><oops></core:CityModel>")
+    with pytest.raises(CityGMLError):
+        import_citygml(db_engine, broken, name="par-broken", options=ImportOptions(parallel_read=True))
+    assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name = 'par-broken'") == 0
