@@ -21,14 +21,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from db.citygml.reader import read_model
-from services.results_read import iter_surface_textures
 from services.runner import RunOptions, run_job
-from workers.pipeline.raycast import RayCaster
+from services.synth_eval import texture_accuracy
 from workers.pipeline.synth import (
     BUNDLED_MODEL,
     ErrorOptions,
@@ -36,43 +33,6 @@ from workers.pipeline.synth import (
     synthesize,
     write_synthetic_package,
 )
-from workers.pipeline.texel import TexelOptions, texel_grid
-from workers.pipeline.texture_eval import summarize, surface_errors, truth_raster, visible_texels
-
-
-def below_ground(grid, ground_z: float) -> np.ndarray:
-    """(H, W) bool: texel centres below the synthetic ground plane."""
-    r, c = np.indices(grid.shape)
-    z = grid.centres(r.ravel(), c.ravel())[:, 2].reshape(grid.shape)
-    return z < ground_z
-
-
-def evaluate(out_dir: Path, res, resolution: float) -> dict:
-    """Accuracy figures of a results folder against the synthetic truth."""
-    rep = json.loads((out_dir / "report.json").read_text())
-    processed = {b["id"] for b in rep["buildings"]}
-    got = {s.polygon.id: s for s in iter_surface_textures(out_dir, res.manifest.radiometry)}
-    caster = RayCaster(res.mesh)
-    gz = res.truth.ground_z
-    opts = TexelOptions(resolution_px_per_m=resolution)
-    errors = []
-    for b in res.buildings:
-        if b.id not in processed:
-            continue
-        for part in b.iter_buildings():
-            for poly in part.polygons:
-                grid = texel_grid(poly, part.id, opts)
-                if grid is None:
-                    continue
-                vis = visible_texels(grid, res.manifest.camera, res.truth.poses, caster, ground_z=gz)
-                if not vis.any() and poly.id not in got:
-                    continue
-                truth = truth_raster(grid, lambda X, pid=poly.id: res.thermal.surface_temperature(pid, X))
-                value = got[poly.id].value.copy() if poly.id in got else truth * float("nan")
-                # the synthetic world's ground plane hides what the model puts below it
-                value[below_ground(grid, gz)] = np.nan
-                errors.append(surface_errors(grid, value, truth, vis))
-    return summarize(errors)
 
 
 def main() -> None:
@@ -139,7 +99,7 @@ def main() -> None:
     if "workers_1" in runs and "workers_2" in runs:
         out["speedup_2_workers"] = round(runs["workers_1"]["wall_s"] / runs["workers_2"]["wall_s"], 2)
     if first is not None:
-        acc = evaluate(first, res, a.resolution)
+        acc = texture_accuracy(first, res)
         out["accuracy"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in acc.items()}
         out["bars"] = {
             "rmse_k<=0.35": acc["rmse_k"] <= 0.35,

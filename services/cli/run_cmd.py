@@ -65,6 +65,28 @@ def summary_table(summary: RunSummary, limit: int = 30) -> Table:
     return table
 
 
+def run_with_progress(
+    city: Path, package: Path, out: Path, options: RunOptions, console: Console
+) -> RunSummary:
+    """`run_job` with one rich progress bar per stage."""
+    columns = (
+        TextColumn("{task.description:<30}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=console, transient=False) as bars:
+        tasks = {s: bars.add_task(_LABELS[s], total=None, start=False) for s in STAGES}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            task = tasks[stage]
+            if done == 0:
+                bars.start_task(task)
+            bars.update(task, completed=done, total=max(total, 1))
+
+        return run_job(city, package, out, options, progress)
+
+
 def run(
     city: Path = typer.Argument(..., help="CityGML file (1.0, 2.0 or 3.0)."),
     package: Path = typer.Argument(..., help="Sequence package: folder, sequence.json, .zip or .tar(.gz)."),
@@ -88,27 +110,11 @@ def run(
         refine=refine,
         display=not no_display,
     )
-    columns = (
-        TextColumn("{task.description:<30}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-    )
-    with Progress(*columns, console=console, transient=False) as bars:
-        tasks = {s: bars.add_task(_LABELS[s], total=None, start=False) for s in STAGES}
-
-        def progress(stage: str, done: int, total: int) -> None:
-            task = tasks[stage]
-            if done == 0:
-                bars.start_task(task)
-            bars.update(task, completed=done, total=max(total, 1))
-
-        try:
-            summary = run_job(city, package, out, options, progress)
-        except (RunError, ValueError, OSError) as exc:
-            bars.stop()
-            console.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(code=2) from exc
+    try:
+        summary = run_with_progress(city, package, out, options, console)
+    except (RunError, ValueError, OSError) as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(code=2) from exc
     console.print(summary_table(summary))
     t = summary.timings_s
     console.print(

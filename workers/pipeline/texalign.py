@@ -32,6 +32,8 @@ class AlignOptions:
         min_overlap_side: smallest side of the overlap's bounding box, texels.
         refine_iterations: Gauss-Newton steps after the phase correlation (0: none).
         max_lk_texels: at most this many texels enter the least-squares refinement.
+        max_window: the correlation runs on at most `max_window × max_window` texels of the
+            overlap (around its centre), which bounds its cost on large surfaces.
     """
 
     max_shift_texels: float = 2.0
@@ -40,7 +42,8 @@ class AlignOptions:
     min_overlap_texels: int = 400
     min_overlap_side: int = 16
     refine_iterations: int = 3
-    max_lk_texels: int = 40000
+    max_lk_texels: int = 8000
+    max_window: int = 128
 
 
 def _parabola(m1: float, c: float, p1: float) -> float:
@@ -134,6 +137,18 @@ def align_partial(
     r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     if min(r1 - r0, c1 - c0) < options.min_overlap_side:
         return None
+    m = options.max_window
+    if r1 - r0 > m or c1 - c0 > m:  # a window around the overlap's centre of mass
+        rr, cc = np.nonzero(both)
+        rc, ccn = int(np.median(rr)), int(np.median(cc))
+        if r1 - r0 > m:
+            r0 = min(max(rc - m // 2, r0), r1 - m)
+            r1 = r0 + m
+        if c1 - c0 > m:
+            c0 = min(max(ccn - m // 2, c0), c1 - m)
+            c1 = c0 + m
+        if int(both[r0:r1, c0:c1].sum()) < options.min_overlap_texels:
+            return None
     win = both[r0:r1, c0:c1]
     a = fused[r0:r1, c0:c1]
     b = partial[r0:r1, c0:c1]

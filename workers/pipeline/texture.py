@@ -27,7 +27,6 @@ from workers.pipeline.texalign import AlignOptions, align_partial
 from workers.pipeline.texel import TexelGrid
 from workers.pipeline.visibility import (
     OcclusionScene,
-    TexelProjection,
     VisibilityOptions,
     boxes_in_frustum,
     consistent_samples,
@@ -164,13 +163,16 @@ class SurfaceTexture:
 
 @dataclass(frozen=True, eq=False)
 class SurfaceTexels:
-    """A texel grid with its texels inside the polygon flattened for projection.
+    """A texel grid with its texels inside the polygon flattened for projection, ordered by
+    square blocks so that a frame's frustum test can skip the blocks it cannot see.
 
     Attributes:
         grid: the surface's `TexelGrid`.
-        rows, cols: `(N,)` intp raster indices of the texels inside the polygon.
+        rows, cols: `(N,)` intp raster indices of the texels inside the polygon, block by block.
         points: `(N, 3)` float64 world centres of those texels.
         lo, hi: `(3,)` bounds of `points` (for the frustum test).
+        block_start: `(B + 1,)` first texel of each block (and N).
+        block_lo, block_hi: `(B, 3)` bounds of each block's texel centres.
     """
 
     grid: TexelGrid
@@ -179,25 +181,59 @@ class SurfaceTexels:
     points: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
+    block_start: np.ndarray
+    block_lo: np.ndarray
+    block_hi: np.ndarray
 
     @classmethod
-    def of(cls, grid: TexelGrid) -> SurfaceTexels:
-        """Flatten the texels of `grid` inside its polygon."""
+    def of(cls, grid: TexelGrid, block: int = 16) -> SurfaceTexels:
+        """Flatten the texels of `grid` inside its polygon, in blocks of `block × block` texels."""
         rows, cols = grid.masked_indices()
-        pts = grid.centres(rows, cols)
-        lo = pts.min(axis=0) if len(pts) else grid.corner
-        hi = pts.max(axis=0) if len(pts) else grid.corner
-        return cls(grid=grid, rows=rows, cols=cols, points=pts, lo=lo, hi=hi)
+        return cls._build(grid, rows, cols, grid.centres(rows, cols), block)
 
-    def without(self, drop: np.ndarray) -> SurfaceTexels:
+    @classmethod
+    def _build(
+        cls, grid: TexelGrid, rows: np.ndarray, cols: np.ndarray, pts: np.ndarray, block: int
+    ) -> SurfaceTexels:
+        n_bc = grid.shape[1] // block + 1
+        key = (rows // block) * n_bc + cols // block
+        order = np.argsort(key, kind="stable")
+        rows, cols, pts, key = rows[order], cols[order], pts[order], key[order]
+        if len(pts) == 0:
+            z = np.zeros((0, 3))
+            return cls(grid, rows, cols, pts, grid.corner, grid.corner, np.zeros(1, np.intp), z, z)
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        bounds = np.r_[starts, len(key)].astype(np.intp)
+        return cls(
+            grid=grid,
+            rows=rows,
+            cols=cols,
+            points=pts,
+            lo=pts.min(axis=0),
+            hi=pts.max(axis=0),
+            block_start=bounds,
+            block_lo=np.minimum.reduceat(pts, starts, axis=0),
+            block_hi=np.maximum.reduceat(pts, starts, axis=0),
+        )
+
+    def without(self, drop: np.ndarray, block: int = 16) -> SurfaceTexels:
         """The same surface without the texels flagged in `drop (N,)` (e.g. never visible)."""
         if not drop.any():
             return self
         keep = ~drop
-        pts = self.points[keep]
-        lo = pts.min(axis=0) if len(pts) else self.lo
-        hi = pts.max(axis=0) if len(pts) else self.hi
-        return SurfaceTexels(self.grid, self.rows[keep], self.cols[keep], pts, lo, hi)
+        return SurfaceTexels._build(self.grid, self.rows[keep], self.cols[keep], self.points[keep], block)
+
+    def in_view(self, camera: Camera, pose: Pose, options: VisibilityOptions) -> np.ndarray:
+        """Indices `(M,)` of the texels in the blocks that may appear in the frame at `pose`."""
+        ok = boxes_in_frustum(camera, pose, self.block_lo, self.block_hi, options)
+        if ok.all():
+            return np.arange(len(self.points))
+        b = np.nonzero(ok)[0]
+        if len(b) == 0:
+            return np.zeros(0, np.intp)
+        lengths = self.block_start[b + 1] - self.block_start[b]
+        offsets = np.repeat(self.block_start[b] - np.r_[0, np.cumsum(lengths)[:-1]], lengths)
+        return np.arange(int(lengths.sum())) + offsets
 
 
 def texture_frame(
@@ -219,36 +255,54 @@ def texture_frame(
         surfaces, textures: the surfaces of one building and their fused textures (same order).
         scene: the scene (building and occluders) for the occlusion test, or None (no test).
 
-    Returns the number of texels this frame observed (before the best-resolution selection).
+    Returns the number of texels this frame observed with a better local resolution than fused
+    so far (the candidates for merging; observations that cannot win are skipped before the
+    occlusion test).
     """
     if not surfaces:
         return 0
     lo = np.stack([s.lo for s in surfaces])
     hi = np.stack([s.hi for s in surfaces])
     candidates = boxes_in_frustum(camera, pose, lo, hi, visibility)
-    picked: list[tuple[int, np.ndarray, TexelProjection]] = []
+    # per surface: texel indices, their pixels, distances and viewing-angle cosines
+    picked: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     for k in np.nonzero(candidates)[0]:
         surf = surfaces[k]
         if len(surf.points) == 0 or not facing(surf.grid.normal, surf.grid.corner, pose.center):
             continue
-        proj = project_texels(camera, pose, surf.points, surf.grid.normal, visibility)
-        idx = np.nonzero(proj.ok)[0]
-        if len(idx):
-            picked.append((int(k), idx, proj))
+        sub = surf.in_view(camera, pose, visibility)
+        if len(sub) == 0:
+            continue
+        proj = project_texels(camera, pose, surf.points[sub], surf.grid.normal, visibility)
+        ok = np.nonzero(proj.ok)[0]
+        if len(ok) == 0:
+            continue
+        idx = sub[ok]
+        # observations that cannot win (coarser than what is fused) need no occlusion test
+        res_s, res_t = local_resolution(camera, pose, surf.points[idx], surf.grid.s_axis, surf.grid.t_axis)
+        res = np.maximum(res_s, res_t).astype(np.float32)
+        tex = textures[k]
+        win = res < tex.resolution[surf.rows[idx], surf.cols[idx]] * np.float32(fusion.improve_factor)
+        if win.any():
+            w = np.nonzero(win)[0]
+            picked.append(
+                (int(k), idx[w], proj.uv[ok[w]], proj.distance[ok[w]], proj.cos_view[ok[w]], res[w])
+            )
     if not picked:
         return 0
     if scene is not None:
-        buffer = scene.buffer(pose, np.concatenate([proj.uv[idx] for _, idx, proj in picked]))
+        buffer = scene.buffer(pose, np.concatenate([p[2] for p in picked]))
     observed = 0
-    for k, idx, proj in picked:
+    for k, idx, uv, dist, cos_view, res in picked:
         if scene is not None:
             own = scene.polygon_index.get(surfaces[k].grid.polygon_id, -2)
-            idx = idx[consistent_samples(buffer, proj.uv[idx], proj.distance[idx], own, visibility)]
+            bld = int(scene.polygon_building[own]) if own >= 0 else -2
+            keep = consistent_samples(buffer, uv, dist, own, bld, scene.polygon_building, visibility)
+            idx, uv, cos_view, res = idx[keep], uv[keep], cos_view[keep], res[keep]
         if len(idx) == 0:
             continue
         surf, tex = surfaces[k], textures[k]
         rows, cols = surf.rows[idx], surf.cols[idx]
-        uv = proj.uv[idx]
         values = sample_bilinear(image, uv)
         if fusion.align and tex.observed.any():
             shift = align_partial(tex.value, tex.partial(rows, cols, values), fusion.alignment)
@@ -261,8 +315,7 @@ def texture_frame(
                     np.float32
                 )
                 tex.shifts[frame_index] = (dx, dy)
-        res_s, res_t = local_resolution(camera, pose, surf.points[idx], surf.grid.s_axis, surf.grid.t_axis)
-        angle = np.degrees(np.arccos(np.clip(proj.cos_view[idx], -1.0, 1.0))).astype(np.float32)
-        tex.merge(rows, cols, values, np.maximum(res_s, res_t), angle, frame_index, fusion.improve_factor)
+        angle = np.degrees(np.arccos(np.clip(cos_view, -1.0, 1.0))).astype(np.float32)
+        tex.merge(rows, cols, values, res, angle, frame_index, fusion.improve_factor)
         observed += len(idx)
     return observed

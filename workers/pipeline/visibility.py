@@ -36,7 +36,8 @@ class VisibilityOptions:
             `unoccluded` (point-wise test).
         depth_tolerance_m, depth_tolerance_rel: a pixel read by bilinear sampling belongs to the
             texel's surface when it sees the texel's polygon or something at the texel's distance
-            within `depth_tolerance_m + depth_tolerance_rel · distance`.
+            within `depth_tolerance_m + depth_tolerance_rel · distance` (for a polygon of the
+            same building; `depth_tolerance_other_m` for any other).
     """
 
     margin_px: float = 1.0
@@ -46,6 +47,7 @@ class VisibilityOptions:
     occlusion_tolerance_m: float = 0.05
     depth_tolerance_m: float = 0.3
     depth_tolerance_rel: float = 0.02
+    depth_tolerance_other_m: float = 0.1
 
 
 @functools.lru_cache(maxsize=64)
@@ -103,9 +105,10 @@ def boxes_in_frustum(
         [np.where(np.array([i & 1, i & 2, i & 4], dtype=bool), hi, lo) for i in range(8)], axis=1
     )  # (B, 8, 3)
     planes = frustum_planes(camera, pose, margin_px=2.0)
-    side = corners @ planes[:, :3].T + planes[:, 3]  # (B, 8, 4)
+    rel = corners - pose.center  # planes pass through the centre: no large offsets
+    side = rel @ planes[:, :3].T  # (B, 8, 4)
     outside_side = np.any(np.all(side < 0, axis=1), axis=1)
-    z = (corners - pose.center) @ pose.R_world_from_cam[:, 2]  # depth along the optical axis
+    z = rel @ pose.R_world_from_cam[:, 2]  # depth along the optical axis
     behind = np.all(z < options.min_depth_m, axis=1)
     nearest = np.linalg.norm(np.clip(pose.center, lo, hi) - pose.center, axis=1)
     too_far = nearest > options.max_distance_m
@@ -152,26 +155,34 @@ def project_texels(
     camera: Camera, pose: Pose, points: np.ndarray, normal: np.ndarray, options: VisibilityOptions
 ) -> TexelProjection:
     """Project texel centres `points (N, 3)` of one surface (unit `normal (3,)`) into a frame and
-    apply the geometric visibility tests (not occlusion)."""
-    pts = np.asarray(points, dtype=np.float64)
-    to_cam = pose.center - pts
-    distance = np.linalg.norm(to_cam, axis=1)
-    cos_view = (to_cam @ normal) / np.maximum(distance, 1e-12)
-    xc = (pts - pose.center) @ pose.R_world_from_cam
+    apply the geometric visibility tests (not occlusion).
+
+    Points outside the frustum of the undistorted image border are rejected before the
+    distortion is applied (the polynomial can fold points far outside the field of view back
+    into the image)."""
+    xc = (np.asarray(points, dtype=np.float64) - pose.center) @ pose.R_world_from_cam
     depth = xc[:, 2]
+    distance = np.sqrt(np.einsum("ij,ij->i", xc, xc))
+    n_c = pose.R_world_from_cam.T @ np.asarray(normal, dtype=np.float64)
+    cos_view = -(xc @ n_c) / np.maximum(distance, 1e-12)
+    a_lo, a_hi, b_lo, b_hi = _frustum_extent(camera, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = xc[:, 0] / depth
+        b = xc[:, 1] / depth
     ok = (
         (cos_view > math.cos(math.radians(options.max_view_angle_deg)))
         & (depth > options.min_depth_m)
         & (distance < options.max_distance_m)
+        & (a >= a_lo)
+        & (a <= a_hi)
+        & (b >= b_lo)
+        & (b <= b_hi)
     )
-    # inside the frustum: also keeps points far outside the field of view, which the distortion
-    # polynomial can fold back into the image, from projecting at all
-    planes = frustum_planes(camera, pose, margin_px=1.0)
-    ok &= np.all(pts @ planes[:, :3].T + planes[:, 3] >= 0.0, axis=1)
-    uv = np.full((len(pts), 2), np.nan)
-    if ok.any():
-        uv[ok] = camera.project(xc[ok])
-        ok &= camera.in_image(uv, margin=options.margin_px)
+    uv = np.full((len(xc), 2), np.nan)
+    idx = np.nonzero(ok)[0]
+    if len(idx):
+        uv[idx] = camera.pixel_from_normalized(np.stack([a[idx], b[idx]], axis=1))
+        ok[idx] = camera.in_image(uv[idx], margin=options.margin_px)
     return TexelProjection(uv=uv, depth=depth, distance=distance, cos_view=cos_view, ok=ok)
 
 
@@ -192,60 +203,56 @@ def pixel_rays(camera: Camera) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class HitBuffer:
-    """What the pixels bilinear sampling reads see in one frame: first-hit distance and polygon.
+    """What the pixels bilinear sampling reads see in one frame: first-hit distance and polygon,
+    stored flat (pixel `(v, u)` at `v · width + u`).
 
     Attributes:
-        t: `(H, W)` float32 distance from the projection centre to the first hit (inf: nothing,
+        width, height: image size.
+        t: `(H·W,)` float32 distance from the projection centre to the first hit (inf: nothing,
             or a pixel that was not cast).
-        polygon: `(H, W)` int32 index into the scene's `polygon_ids` (-1: nothing / not cast).
+        polygon: `(H·W,)` int32 index into the scene's `polygon_ids` (-1: nothing / not cast).
     """
 
+    width: int
+    height: int
     t: np.ndarray
     polygon: np.ndarray
 
 
-def _neighbour_pixels(uv: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
-    """Top-left pixel `(row, col)` `(N,)` of the 2x2 bilinear neighbourhood of each `uv (N, 2)`."""
+def _top_left(uv: np.ndarray, H: int, W: int) -> np.ndarray:
+    """Flat index `(N,)` of the top-left pixel of the 2x2 bilinear neighbourhood of `uv (N, 2)`
+    (clamped so that the neighbourhood lies inside the image)."""
     c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp), 0, max(W - 2, 0))
     r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp), 0, max(H - 2, 0))
-    return r0, c0
-
-
-def hit_buffer(raycaster: RayCaster, rays: np.ndarray, pose: Pose, uv: np.ndarray) -> HitBuffer:
-    """Cast the pixel rays `rays (H, W, 3)` (camera frame) of the pixels that bilinear sampling at
-    `uv (N, 2)` reads, from the projection centre of `pose` through the scene."""
-    H, W = rays.shape[:2]
-    need = np.zeros((H, W), dtype=bool)
-    r0, c0 = _neighbour_pixels(uv, H, W)
-    r1, c1 = np.minimum(r0 + 1, H - 1), np.minimum(c0 + 1, W - 1)
-    for r in (r0, r1):
-        for c in (c0, c1):
-            need[r, c] = True
-    rr, cc = np.nonzero(need)
-    dirs = rays[rr, cc] @ pose.R_world_from_cam.T.astype(np.float32)
-    hits = raycaster.cast(np.broadcast_to(pose.center, dirs.shape), dirs)
-    t = np.full((H, W), np.inf, np.float32)
-    poly = np.full((H, W), -1, np.int32)
-    t[rr, cc] = hits.t
-    poly[rr, cc] = hits.polygon
-    return HitBuffer(t=t, polygon=poly)
+    return r0 * W + c0
 
 
 def consistent_samples(
-    buffer: HitBuffer, uv: np.ndarray, distance: np.ndarray, polygon: int, options: VisibilityOptions
+    buffer: HitBuffer,
+    uv: np.ndarray,
+    distance: np.ndarray,
+    polygon: int,
+    building: int,
+    polygon_building: np.ndarray,
+    options: VisibilityOptions,
 ) -> np.ndarray:
     """`(N,)` bool: all four pixels that bilinear sampling at `uv (N, 2)` reads see the texel's own
-    surface — their first hit is the texel's `polygon` or lies at the texel's `distance (N,)`
-    within `depth_tolerance_m + depth_tolerance_rel · distance`. This is the occlusion test (an
-    occluder in front fails it) and keeps samples from mixing the surface with the sky, the
-    background or an occluder at silhouette edges."""
-    H, W = buffer.t.shape
-    r0, c0 = _neighbour_pixels(uv, H, W)
+    surface. A pixel qualifies when its first hit is the texel's `polygon`; or another polygon of
+    the same top-level `building` at the texel's `distance (N,)` within `depth_tolerance_m +
+    depth_tolerance_rel · distance` (neighbouring walls at corners, seen at grazing angles); or
+    anything within `depth_tolerance_other_m`. This is the occlusion test (an occluder in front
+    fails it) and keeps samples from mixing the surface with the sky, the background or another
+    building at silhouette edges. `polygon_building (P + 1,)` maps polygon index -> building index,
+    its last entry (index -1) is -1."""
+    W = buffer.width
+    lin = _top_left(uv, buffer.height, W)
     tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
     ok = np.ones(len(uv), dtype=bool)
-    for r in (r0, np.minimum(r0 + 1, H - 1)):
-        for c in (c0, np.minimum(c0 + 1, W - 1)):
-            ok &= (buffer.polygon[r, c] == polygon) | (np.abs(buffer.t[r, c] - distance) <= tol)
+    for off in (0, 1, W, W + 1):
+        poly = buffer.polygon[lin + off]
+        dt = np.abs(buffer.t[lin + off] - distance)
+        same_building = polygon_building[poly] == building
+        ok &= (poly == polygon) | (same_building & (dt <= tol)) | (dt <= options.depth_tolerance_other_m)
     return ok
 
 
@@ -266,15 +273,48 @@ def buried_texels(
 
 
 class OcclusionScene:
-    """Everything the per-texel occlusion test needs for one unit: the ray caster over the scene
-    (building and occluders), the camera's pixel rays, and the scene index of each polygon id.
-    Not picklable (holds the ray caster); build one per unit."""
+    """Everything the per-texel occlusion test needs for one unit: an Open3D scene over the
+    scene mesh (building and occluders), the camera's pixel rays, and the scene index and
+    building of each polygon. Rays are built in float32 in the mesh's local frame (no float64
+    round trip). Not picklable; build one per unit."""
 
     def __init__(self, raycaster: RayCaster, camera: Camera) -> None:
-        self.raycaster = raycaster
+        import open3d as o3d  # heavy: only processes that cast need it
+
+        mesh = raycaster.mesh
+        self.mesh = mesh
+        self._o3d = o3d
+        self._scene = o3d.t.geometry.RaycastingScene()
+        if len(mesh.triangles):
+            self._scene.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
+            )
         self.rays = pixel_rays(camera)
-        self.polygon_index = raycaster.mesh.polygon_index()
+        self.polygon_index = mesh.polygon_index()
+        self.building_index = {b: k for k, b in enumerate(dict.fromkeys(mesh.polygon_building))}
+        self.polygon_building = np.array(
+            [self.building_index[b] for b in mesh.polygon_building] + [-1], dtype=np.intp
+        )
+        self._tri_polygon = np.append(mesh.triangle_polygon.astype(np.int32), np.int32(-1))
 
     def buffer(self, pose: Pose, uv: np.ndarray) -> HitBuffer:
-        """Hit buffer of the frame at `pose` over the window covering `uv (N, 2)`."""
-        return hit_buffer(self.raycaster, self.rays, pose, uv)
+        """Cast the pixels that bilinear sampling at `uv (N, 2)` reads, from the projection centre
+        of `pose` through the scene."""
+        H, W = self.rays.shape[:2]
+        need = np.zeros(H * W, dtype=bool)
+        lin = _top_left(uv, H, W)
+        for off in (0, 1, W, W + 1):
+            need[lin + off] = True
+        pix = np.flatnonzero(need)
+        t = np.full(H * W, np.inf, np.float32)
+        poly = np.full(H * W, -1, np.int32)
+        if len(self.mesh.triangles) and len(pix):
+            rays = np.empty((len(pix), 6), np.float32)
+            rays[:, :3] = (pose.center - self.mesh.origin).astype(np.float32)
+            rays[:, 3:] = self.rays.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
+            ans = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+            t[pix] = ans["t_hit"].numpy()
+            prim = ans["primitive_ids"].numpy().astype(np.int64)
+            poly[pix] = self._tri_polygon[np.minimum(prim, len(self._tri_polygon) - 1)]
+        return HitBuffer(width=W, height=H, t=t, polygon=poly)

@@ -1,0 +1,76 @@
+"""Compare a results folder with a synthetic scene's ground truth (demo and bench).
+
+In: a results folder of `citytherm run` and the `SynthResult` that made its package.
+Out: texture figures (RMSE in kelvin — all observed texels, near and away from sharp edges —,
+median misregistration in texels, coverage of the texels the frames can see) and, when poses
+were refined, the refined poses' errors against the true poses.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.results_read import iter_surface_textures
+from workers.pipeline.raycast import RayCaster
+from workers.pipeline.synth import SynthResult
+from workers.pipeline.texel import TexelGrid, TexelOptions, texel_grid
+from workers.pipeline.texture_eval import summarize, surface_errors, truth_raster, visible_texels
+
+
+def below_ground(grid: TexelGrid, ground_z: float) -> np.ndarray:
+    """`(H, W)` bool: texel centres below the synthetic ground plane (hidden in that world)."""
+    r, c = np.indices(grid.shape)
+    z = grid.centres(r.ravel(), c.ravel())[:, 2].reshape(grid.shape)
+    return z < ground_z
+
+
+def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
+    """Texture figures of the results folder against the truth of `res` (true poses decide
+    which texels the frames can see; texels below the synthetic ground plane are left out)."""
+    out = Path(out_dir)
+    rep = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    processed = {b["id"] for b in rep["buildings"]}
+    got = {s.polygon.id: s for s in iter_surface_textures(out, res.manifest.radiometry)}
+    caster = RayCaster(res.mesh)
+    gz = res.truth.ground_z
+    opts = TexelOptions(resolution_px_per_m=float(rep["resolution_px_per_m"]))
+    errors = []
+    for b in res.buildings:
+        if b.id not in processed:
+            continue
+        for part in b.iter_buildings():
+            for poly in part.polygons:
+                grid = texel_grid(poly, part.id, opts)
+                if grid is None:
+                    continue
+                vis = visible_texels(grid, res.manifest.camera, res.truth.poses, caster, ground_z=gz)
+                if not vis.any() and poly.id not in got:
+                    continue
+                truth = truth_raster(grid, lambda X, pid=poly.id: res.thermal.surface_temperature(pid, X))
+                value = (
+                    got[poly.id].value.copy() if poly.id in got else np.full(grid.shape, np.nan, np.float32)
+                )
+                value[below_ground(grid, gz)] = np.nan
+                errors.append(surface_errors(grid, value, truth, vis))
+    return summarize(errors)
+
+
+def orientation_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, Any]:
+    """Position errors (m) of prior and refined poses against the true poses, medians."""
+    doc = json.loads((Path(out_dir) / "orientation.json").read_text(encoding="utf-8"))
+    prior, refined = [], []
+    for f in doc["frames"]:
+        true_c = res.truth.poses[f["index"]].center
+        prior.append(float(np.linalg.norm(np.array(f["prior"]["center"]) - true_c)))
+        for r in f["refined"]:
+            if r["status"] == "refined":
+                refined.append(float(np.linalg.norm(np.array(r["center"]) - true_c)))
+    return {
+        "prior_position_error_median_m": float(np.median(prior)) if prior else None,
+        "refined_position_error_median_m": float(np.median(refined)) if refined else None,
+        "refined_entries": len(refined),
+    }
