@@ -38,6 +38,7 @@ import contextlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from workers.pipeline.camera import Camera
@@ -92,10 +93,11 @@ class CoregisterOptions:
     # joint coarse search over all frames of the building (common boresight/position error) ...
     joint_coarse: bool = True
     # ... at most this many frames (evenly spread) take part ...
-    joint_coarse_max_frames: int = 30
+    joint_coarse_max_frames: int = 16
     # ... on this pyramid level, over image shifts up to this radius (pixels; model samples up to
     # this far outside the frame take part) and these depth offsets (shares of the median depth)
     joint_coarse_level: int = 8
+    joint_coarse_downsample: int = 2
     joint_coarse_radius_px: float = 320.0
     joint_coarse_depth_steps: tuple[float, ...] = (0.0,)
     # ... with the wireframe of the whole scene of the ray caster (the building and its
@@ -264,11 +266,15 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
                   images: Mapping[int, np.ndarray], prior: Mapping[int, Pose],
                   options: CoregisterOptions) -> tuple[np.ndarray, float, float, float] | None:
     """Common coarse correction of (up to `joint_coarse_max_frames`) frames, see `joint_coarse`."""
-    fo = replace(options.fit, coarse_level=options.joint_coarse_level,
-                 coarse_radius_px=options.joint_coarse_radius_px,
+    # the search runs on frames downsampled by `joint_coarse_downsample` (a scaled camera)
+    ds = max(int(options.joint_coarse_downsample), 1)
+    cam = camera.scaled(1.0 / ds) if ds > 1 else camera
+    level = max(options.joint_coarse_level // ds, 1)
+    radius = options.joint_coarse_radius_px / ds
+    fo = replace(options.fit, coarse_level=level, coarse_radius_px=radius,
                  coarse_depth_steps=options.joint_coarse_depth_steps)
-    eo = replace(options.edges, image_margin_px=-options.joint_coarse_radius_px)
-    fe = replace(options.features, dt_levels=(options.joint_coarse_level,))
+    eo = replace(options.edges, image_margin_px=-radius)
+    fe = replace(options.features, dt_levels=(level,))
     if options.joint_coarse_scene and getattr(raycaster, "mesh", None) is not None:
         with contextlib.suppress(WireframeError):
             wf = mesh_wireframe(raycaster.mesh, options.edges)
@@ -277,11 +283,14 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
     poses, vis_list, feats_list = [], [], []
     for k in pick:
         i = frames[k]
-        vis = visible_wireframe(wf, camera, prior[i], raycaster, eo)
+        vis = visible_wireframe(wf, cam, prior[i], raycaster, eo)
         if len(vis.points) < fo.min_samples:
             continue
+        img = images[i]
+        if ds > 1:
+            img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         try:
-            feats = extract_features(images[i], fe, None, points=False)
+            feats = extract_features(img, fe, None, points=False)
         except FeatureError:
             continue
         poses.append(prior[i])
@@ -289,4 +298,7 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
         feats_list.append(feats)
     if not poses:
         return None
-    return joint_coarse(camera, poses, vis_list, feats_list, fo, options.joint_coarse_rolls_deg)
+    common = joint_coarse(cam, poses, vis_list, feats_list, fo, options.joint_coarse_rolls_deg)
+    if common is None:
+        return None
+    return (common[0] * ds, *common[1:])

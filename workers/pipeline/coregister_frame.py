@@ -63,7 +63,7 @@ class FrameFitOptions:
     coarse_rotation_sigma_deg: float = 2.0
     coarse_translation_sigma_m: float = 3.0
     # fine stage: edge search radius along the normal, at the start and at the end, pixels
-    edge_radius_start_px: float = 14.0
+    edge_radius_start_px: float = 24.0
     edge_radius_min_px: float = 3.0
     # a gradient counts as an edge when its normal component exceeds this share of the ROI's
     # robust gradient scale, and the gradient is within edge_max_angle_deg of the normal

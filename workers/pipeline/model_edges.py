@@ -63,6 +63,8 @@ class EdgeOptions:
     visibility_offset_m: float = 0.05
     # the ray stops this far short of the sample, metres
     visibility_tolerance_m: float = 0.05
+    # weight factor of inner edges (both polygons facing the camera) against outline edges
+    inner_weight: float = 0.5
     # samples within this many pixels of the frame border are dropped
     image_margin_px: float = 2.0
     # samples closer to the camera than this (along the optical axis) are dropped, metres
@@ -323,7 +325,11 @@ def visible_wireframe(
     to_cam = C - pts
     normals = wireframe.edge_normals[edge_of]
     # at least one polygon of the edge faces the camera (a missing second polygon has a zero normal)
-    facing = np.any(np.einsum("nkj,nj->nk", normals, to_cam) > 0, axis=1)
+    toward = np.einsum("nkj,nj->nk", normals, to_cam) > 0
+    facing = np.any(toward, axis=1)
+    # an edge between two polygons both facing the camera is an inner edge (a ridge, a roof-wall
+    # edge seen from above): its image contrast is not certain, unlike an outline
+    inner = np.all(toward, axis=1)
     uv, depth = pose.project(camera, pts)
     ok = facing & (depth > options.min_depth_m) & camera.in_image(uv, options.image_margin_px)
     outward = wireframe.edge_outward[edge_of[ok]]
@@ -363,7 +369,7 @@ def visible_wireframe(
         points=pts[sel],
         edge=edge_of[sel],
         direction=d,
-        weight=wireframe.edge_weight[edge_of[sel]],
+        weight=wireframe.edge_weight[edge_of[sel]] * np.where(inner[sel], options.inner_weight, 1.0),
         corners=cor,
         corner_points=cp,
         n_edges=len(vis_edges),
