@@ -354,6 +354,8 @@ def export_citygml(
     engine = as_engine(db)
     images = _Images(out)
     with engine.connect() as conn:
+        # many small indexed queries: parallel workers only add start-up time
+        conn.exec_driver_sql("SET LOCAL max_parallel_workers_per_gather = 0")
         m = _model(conn, model)
         f = _Filter(
             model_id=m["id"],

@@ -291,6 +291,10 @@ def import_citygml(
         t_fin = time.perf_counter()
         with engine.begin() as conn:
             _finish_model(conn, model_id, counts, late)
+        with engine.begin() as conn:
+            # planner statistics for the key columns (geometry statistics are slow to gather)
+            conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")
+            conn.exec_driver_sql("ANALYZE surface (city_model_id, building_id)")
         timings["finish"] = time.perf_counter() - t_fin
     except BaseException:
         with engine.begin() as conn:
