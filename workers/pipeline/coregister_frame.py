@@ -69,6 +69,9 @@ class FrameFitOptions:
     # robust gradient scale, and the gradient is within edge_max_angle_deg of the normal
     edge_min_gradient_rel: float = 0.15
     edge_max_angle_deg: float = 30.0
+    # among edges on the search line, the strongest wins after a Gaussian distance penalty of
+    # this share of the search radius (nearer edges are preferred as the radius shrinks)
+    edge_distance_scale: float = 0.6
     # corner search radius, at the start and at the end, pixels
     point_radius_start_px: float = 10.0
     point_radius_min_px: float = 2.5
@@ -346,10 +349,12 @@ def edge_search(
     gm = np.hypot(gx, gy)
     cos_lim = np.cos(np.radians(options.edge_max_angle_deg))
     valid = inside & (gn >= options.edge_min_gradient_rel * feats.grad_ref) & (gn >= cos_lim * gm)
-    score = np.where(valid, gn * (1.0 - 0.3 * (k[None, :] / max(R, 1)) ** 2), -1.0)
-    # only local maxima of the gradient along the search line
-    left = np.concatenate([np.full((n, 1), -np.inf), gn[:, :-1]], axis=1)
-    right = np.concatenate([gn[:, 1:], np.full((n, 1), -np.inf)], axis=1)
+    penalty = np.exp(-0.5 * (k[None, :] / (options.edge_distance_scale * max(R, 1))) ** 2)
+    score = np.where(valid, gn * penalty, -1.0)
+    # only interior local maxima of the gradient along the search line (a rising gradient at the
+    # end of the line is no edge within the radius)
+    left = np.concatenate([np.full((n, 1), np.inf), gn[:, :-1]], axis=1)
+    right = np.concatenate([gn[:, 1:], np.full((n, 1), np.inf)], axis=1)
     score = np.where((gn >= left) & (gn >= right), score, -1.0)
     j = np.argmax(score, axis=1)
     found = score[np.arange(n), j] > 0
