@@ -35,7 +35,7 @@ SKY, GROUND = -1, -2
 RADIOMETRY = Radiometry(unit="K", scale=0.01, offset=0.0)
 
 
-_POOL: ThreadPoolExecutor | None = None
+_POOL: tuple[int, ThreadPoolExecutor] | None = None  # (pid, pool): a forked child builds its own
 
 
 def _parallel_temperature(
@@ -48,12 +48,13 @@ def _parallel_temperature(
     n = len(p)
     if n_threads < 2 or n < 50_000:
         return thermal.temperature_xyz_unchecked(x, y, z, p)
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="synth-render")
+    if _POOL is None or _POOL[0] != os.getpid():
+        _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="synth-render"))
+    pool = _POOL[1]
     edges = np.linspace(0, n, n_threads + 1).astype(int)
     parts = [(edges[i], edges[i + 1]) for i in range(n_threads)]
     ev = thermal.temperature_xyz_unchecked
-    futures = [_POOL.submit(ev, x[a:b], y[a:b], z[a:b], p[a:b]) for a, b in parts[1:]]
+    futures = [pool.submit(ev, x[a:b], y[a:b], z[a:b], p[a:b]) for a, b in parts[1:]]
     a, b = parts[0]
     first = ev(x[a:b], y[a:b], z[a:b], p[a:b])
     return np.concatenate([first, *(f.result() for f in futures)])
