@@ -11,7 +11,8 @@ Public API (everything below is importable from `workers.pipeline.synth`):
   `result.frames` (`SynthFrames`: `frames[i]` uint16 DN `(H, W)`, `frames.load(i)` float32 K,
   a picklable `FrameSource`), `result.truth` (`SynthTruth`: `poses[i]` true `Pose`,
   `true_mounting`, `time_delay_s`, `anomalies`, ...), `result.thermal` (`ThermalScene`),
-  `result.mesh` (`SceneMesh`), `result.buildings` (the rendered ones), `result.renderer`.
+  `result.mesh` (`SceneMesh`), `result.buildings` (the rendered ones), `result.renderer`,
+  `result.ins` (`InsSimulation`: recorded vs true INS states, per-frame errors).
 - `write_synthetic_package(result, out_dir, truth_path=None) -> Path`; `load_truth(path)`;
   `save_truth(truth, path)`; `load_buildings(truth)`; `thermal_scene_for_truth(truth, buildings)`.
 - `ThermalScene(buildings, polygon_ids=None, seed=0, options=ThermalOptions())`:
