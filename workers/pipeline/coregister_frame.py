@@ -29,6 +29,16 @@ import cv2
 import numpy as np
 
 from workers.pipeline.camera import Camera
+
+# re-exported: the pose geometry and the coarse stage live in their own modules
+from workers.pipeline.coregister_coarse import coarse_search
+from workers.pipeline.coregister_geometry import (
+    apply_delta,
+    pose_delta,
+    project_jacobian,
+    so3_exp,
+    so3_log,
+)
 from workers.pipeline.features import (
     FeatureError,
     FeatureOptions,
@@ -39,6 +49,20 @@ from workers.pipeline.features import (
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
+
+__all__ = [
+    "FrameFit",
+    "FrameFitOptions",
+    "apply_delta",
+    "coarse_search",
+    "edge_search",
+    "fit_frame",
+    "frame_box",
+    "pose_delta",
+    "project_jacobian",
+    "so3_exp",
+    "so3_log",
+]
 
 
 @dataclass(frozen=True)
@@ -140,186 +164,6 @@ class FrameFit:
     image_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     converged: bool = False
     information: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
-
-
-# -- small rotation helpers ---------------------------------------------------------------------
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation vector `(3,)` (radians) -> rotation matrix `(3, 3)` (Rodrigues)."""
-    w = np.asarray(w, dtype=np.float64)
-    t = float(np.linalg.norm(w))
-    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if t < 1e-12:
-        return np.eye(3) + K
-    K /= t
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * (K @ K)
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix `(3, 3)` -> rotation vector `(3,)` (radians)."""
-    c = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
-    t = np.arccos(c)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if t < 1e-9:
-        return 0.5 * v
-    return t / (2 * np.sin(t)) * v
-
-
-def pose_delta(reference: Pose, pose: Pose) -> np.ndarray:
-    """`(6,)` correction `(ω, dC)` taking `reference` to `pose` (ω in the reference camera frame)."""
-    return np.concatenate([so3_log(reference.R_world_from_cam.T @ pose.R_world_from_cam),
-                           pose.center - reference.center])
-
-
-def apply_delta(reference: Pose, delta: np.ndarray) -> Pose:
-    """Inverse of `pose_delta`: `reference` corrected by `delta` `(6,)`."""
-    d = np.asarray(delta, dtype=np.float64)
-    return Pose(reference.R_world_from_cam @ so3_exp(d[:3]), reference.center + d[3:])
-
-
-def _distortion_jacobian(camera: Camera, ab: np.ndarray) -> np.ndarray:
-    """`∂ distort / ∂(a, b)` `(N, 2, 2)` of OpenCV's k1, k2, k3, p1, p2 model at normalised `ab` `(N, 2)`."""
-    a, b = ab[:, 0], ab[:, 1]
-    k1, k2, k3, p1, p2 = camera.k1, camera.k2, camera.k3, camera.p1, camera.p2
-    r2 = a * a + b * b
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r2
-    J = np.empty((len(ab), 2, 2))
-    J[:, 0, 0] = radial + 2 * a * a * d_radial + 2 * p1 * b + 6 * p2 * a
-    J[:, 0, 1] = 2 * a * b * d_radial + 2 * p1 * a + 2 * p2 * b
-    J[:, 1, 0] = J[:, 0, 1]
-    J[:, 1, 1] = radial + 2 * b * b * d_radial + 6 * p1 * b + 2 * p2 * a
-    return J
-
-
-def project_jacobian(camera: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World points `(N, 3)` -> (pixels `(N, 2)`, depth `(N,)`, `∂uv/∂δ` `(N, 2, 6)`)."""
-    R = pose.R_world_from_cam
-    xc = (np.asarray(X, dtype=np.float64) - pose.center) @ R
-    x, y, z = xc[:, 0], xc[:, 1], np.maximum(xc[:, 2], 1e-6)
-    ab = np.stack([x / z, y / z], axis=1)
-    uv = camera.pixel_from_normalized(ab)
-    n = len(xc)
-    D = _distortion_jacobian(camera, ab)
-    D[:, 0, :] *= camera.fx
-    D[:, 1, :] *= camera.fy
-    dab = np.zeros((n, 2, 3))
-    dab[:, 0, 0] = 1 / z
-    dab[:, 0, 2] = -x / z**2
-    dab[:, 1, 1] = 1 / z
-    dab[:, 1, 2] = -y / z**2
-    dxc = np.zeros((n, 3, 6))
-    dxc[:, 0, 1], dxc[:, 0, 2] = -z, y  # ∂x_c/∂ω = [x_c]× (x_c' = exp(-ω) x_c)
-    dxc[:, 1, 0], dxc[:, 1, 2] = z, -x
-    dxc[:, 2, 0], dxc[:, 2, 1] = -y, x
-    dxc[:, :, 3:] = -R.T
-    J = D @ dab @ dxc
-    return uv, xc[:, 2], J
-
-
-# -- coarse stage -------------------------------------------------------------------------------
-def candidate_pose(pose: Pose, depth_m: float, roll_rad: float = 0.0) -> Pose:
-    """`pose` moved `depth_m` along its optical axis and rolled by `roll_rad` about it."""
-    R = pose.R_world_from_cam
-    return Pose(R @ so3_exp(np.array([0.0, 0.0, roll_rad])), pose.center + depth_m * R[:, 2])
-
-
-def coarse_scores(
-    camera: Camera, pose: Pose, vis: VisibleWireframe, feats: ImageFeatures, depths_m: np.ndarray,
-    options: FrameFitOptions, rolls_rad: np.ndarray | None = None,
-) -> np.ndarray:
-    """Mean truncated edge distance (level pixels) of the projected samples for every candidate
-    (depth offset along the optical axis `depths_m` `(D,)` × roll about it `rolls_rad` `(Q,)`,
-    default 0) and image shift -> `(D·Q, 2r+1, 2r+1)` (depth-major), r = coarse radius in level
-    pixels, shift `(j - r, i - r)` level pixels at `[c, i, j]`; the truncation value where a
-    candidate cannot be scored. Computed with `cv2.matchTemplate` on level `coarse_level`."""
-    s = options.coarse_level
-    R_lev = int(np.ceil(options.coarse_radius_px / s))
-    dt = feats.dt.get(s)
-    trunc = float(dt.max()) if dt is not None else 1.0
-    rolls = np.zeros(1) if rolls_rad is None else np.asarray(rolls_rad, dtype=np.float64)
-    cands = [(d, q) for d in depths_m for q in rolls]
-    out = np.full((len(cands), 2 * R_lev + 1, 2 * R_lev + 1), trunc, np.float32)
-    if dt is None or len(vis.points) == 0:
-        return out
-    u0, v0 = feats.roi[0], feats.roi[1]
-    padded = cv2.copyMakeBorder(dt, R_lev, R_lev, R_lev, R_lev, cv2.BORDER_CONSTANT, value=trunc)
-    for k, (d, q) in enumerate(cands):
-        uv, z = candidate_pose(pose, d, q).project(camera, vis.points)
-        ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
-        if ok.sum() < options.min_samples:
-            continue
-        ij = np.rint((uv[ok] - [u0, v0] - (s - 1) / 2) / s).astype(int)
-        lo = ij.min(axis=0)
-        size = ij.max(axis=0) - lo + 1
-        if np.any(size > np.array(dt.shape[::-1]) + 2 * R_lev - 1):
-            continue
-        T = np.zeros((size[1], size[0]), np.float32)
-        np.add.at(T, (ij[:, 1] - lo[1], ij[:, 0] - lo[0]), vis.weight[ok].astype(np.float32))
-        # window of the padded DT: the template's top-left at (lo + R_lev) ± R_lev
-        x0, y0 = lo[0], lo[1]
-        x1, y1 = lo[0] + size[0] + 2 * R_lev, lo[1] + size[1] + 2 * R_lev
-        px, py = max(-x0, 0), max(-y0, 0)
-        pw = cv2.copyMakeBorder(padded, py, max(y1 - padded.shape[0], 0), px, max(x1 - padded.shape[1], 0),
-                                cv2.BORDER_CONSTANT, value=trunc)
-        win = pw[y0 + py: y1 + py, x0 + px: x1 + px]
-        out[k] = cv2.matchTemplate(win, T, cv2.TM_CCORR) / max(float(T.sum()), 1e-9)
-    return out
-
-
-def shift_rotation(camera: Camera, ref_uv: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """Rotation vector ω `(3,)` (camera frame) with `R' = R exp(ω)` moving the image point `ref_uv`
-    `(2,)` by `shift` `(2,)` pixels (exact: the rotation between the two bearings)."""
-    b0 = camera.bearing(np.asarray(ref_uv, dtype=np.float64)[None])[0]
-    b1 = camera.bearing((np.asarray(ref_uv) + shift)[None])[0]
-    axis_q = np.cross(b1, b0)
-    sin_q = np.linalg.norm(axis_q)
-    ang = np.arctan2(sin_q, float(b0 @ b1))
-    return axis_q / sin_q * ang if sin_q > 1e-12 else np.zeros(3)
-
-
-def shift_pose(camera: Camera, pose: Pose, ref_uv: np.ndarray, shift: np.ndarray, depth: float,
-               options: FrameFitOptions) -> Pose:
-    """`pose` changed so that image point `ref_uv` `(2,)` of a surface at `depth` metres moves by
-    `shift` `(2,)` px, by a rotation and a translation across the optical axis (see
-    `coarse_rotation_sigma_deg`)."""
-    sr = np.radians(options.coarse_rotation_sigma_deg)
-    st = options.coarse_translation_sigma_m / max(depth, 1e-3)
-    a = sr**2 / (sr**2 + st**2)
-    shift = np.asarray(shift, dtype=np.float64)
-    w = shift_rotation(camera, ref_uv, a * shift)
-    # moving the camera by -t (camera frame) moves the image by f t / Z
-    t_cam = -np.array([(1 - a) * shift[0] * depth / camera.fx, (1 - a) * shift[1] * depth / camera.fy, 0.0])
-    R = pose.R_world_from_cam
-    return Pose(R @ so3_exp(w), pose.center + R @ t_cam)
-
-
-def shift_penalty(shape: tuple[int, ...], options: FrameFitOptions) -> np.ndarray:
-    """`(2r+1, 2r+1)` penalty favouring small shifts (level pixels of mean distance)."""
-    r = shape[-1] // 2
-    sy, sx = np.mgrid[-r:r + 1, -r:r + 1]
-    return (options.coarse_shift_penalty * np.hypot(sx, sy)).astype(np.float32)
-
-
-def coarse_search(
-    camera: Camera, pose: Pose, vis: VisibleWireframe, feats: ImageFeatures, options: FrameFitOptions
-) -> Pose:
-    """Minimise the mean truncated edge distance of the projected samples over depth offsets and
-    image shifts (level `coarse_level`); the shift is turned into an exact camera rotation."""
-    if len(vis.points) == 0:
-        return pose
-    _, depth = pose.project(camera, vis.points)
-    dmed = float(np.median(depth))
-    depths = np.clip(np.asarray(options.coarse_depth_steps) * dmed, -options.coarse_max_depth_m,
-                     options.coarse_max_depth_m)
-    scores = coarse_scores(camera, pose, vis, feats, depths, options)
-    scores = scores + shift_penalty(scores.shape, options)[None]
-    k, iy, ix = np.unravel_index(int(np.argmin(scores)), scores.shape)
-    r = scores.shape[-1] // 2
-    shift = np.array([ix - r, iy - r], dtype=np.float64) * options.coarse_level
-    moved = Pose(pose.R_world_from_cam, pose.center + depths[k] * pose.R_world_from_cam[:, 2])
-    uv, z = moved.project(camera, vis.points)
-    ref = np.nanmean(uv, axis=0)
-    return shift_pose(camera, moved, ref, shift, float(np.median(z)), options)
 
 
 # -- fine stage ---------------------------------------------------------------------------------

@@ -25,14 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_frame import (
-    FrameFit,
-    FrameFitOptions,
-    candidate_pose,
-    coarse_scores,
-    shift_penalty,
-    shift_pose,
-)
+from workers.pipeline.coregister_coarse import candidate_pose, coarse_scores, shift_penalty, shift_pose
+from workers.pipeline.coregister_frame import FrameFit, FrameFitOptions
 from workers.pipeline.features import ImageFeatures
 from workers.pipeline.model_edges import VisibleWireframe
 from workers.pipeline.pose import Pose
