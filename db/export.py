@@ -90,13 +90,15 @@ class _Filter:
         return p
 
     def building_sql(self) -> str:
-        """SQL selecting the exported top-level buildings (alias `b`)."""
+        """SQL selecting the exported top-level buildings (alias `b`): with a theme or job, those
+        with a non-empty appearance of it (the buildings the job textured)."""
         sql = "SELECT b.id FROM building b WHERE b.city_model_id = :m AND NOT b.is_part"
         if self.bbox is not None:
             sql += " AND b.envelope && ST_MakeEnvelope(:x0, :y0, :x1, :y1, :srid)"
         if self.theme is not None or self.job_id is not None:
             sql += (
                 " AND EXISTS (SELECT 1 FROM appearance a JOIN building pb ON pb.id = a.building_id"
+                " JOIN surface_data sd ON sd.appearance_id = a.id"
                 f" WHERE pb.root_id = b.id AND {self.appearance_sql()})"
             )
         return sql

@@ -348,3 +348,26 @@ def test_two_themes_stay_apart(model, tmp_path) -> None:
         for sd_got, tile in zip(app.surface_data, r.tiles, strict=True):
             data = (out.path.parent / sd_got.image_uri).read_bytes()
             assert data == cv2.imencode(".png", tile.dn)[1].tobytes()
+
+
+def test_untextured_building_result(model, tmp_path) -> None:
+    """A unit that observed nothing: statistics and poses are stored, the export of its theme is
+    empty and no facade row appears."""
+    engine, model_id, _, building = model
+    full = make_result(building, "tir-empty", seed=6, radiometry=Radiometry())
+    stats = tuple(
+        SurfaceStats(s.polygon_id, s.building_id, s.surface_class, s.texels_total, 0) for s in full.surfaces
+    )
+    empty = BuildingResult(building.id, None, (), Radiometry(), stats, full.poses)
+    job = _new_job(engine, model_id, "tir-empty")
+    with Session(engine) as session:
+        stored = store_building_result(session, job_id=job, model_id=model_id, result=empty)
+    assert (stored.images, stored.textured_surfaces, stored.surfaces, stored.poses) == (0, 0, len(stats), 2)
+    out = export_citygml(engine, tmp_path, model=model_id, theme="tir-empty")
+    assert out.buildings == 0 and validate_citygml2(out.path) == []
+    with engine.connect() as c:
+        n = c.execute(text("SELECT count(*) FROM facade_thermal WHERE theme = 'tir-empty'")).scalar_one()
+        share = c.execute(
+            text("SELECT observed_share FROM building_thermal WHERE theme = 'tir-empty'")
+        ).scalar_one()
+    assert n == 0 and share == 0.0
