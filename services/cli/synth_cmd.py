@@ -97,7 +97,7 @@ def synth(
     netd: float = typer.Option(0.05, "--netd", help="Temporal noise, K."),
     psf: float = typer.Option(0.6, "--psf", help="Gaussian blur sigma, px."),
     column_noise: float = typer.Option(0.03, "--column-noise", help="Fixed-pattern column noise, K."),
-    vignetting: float = typer.Option(-0.3, "--vignetting", help="Offset at the corners, K."),
+    vignetting: float = typer.Option(-0.2, "--vignetting", help="Offset at the corners, K."),
     supersample: int = typer.Option(1, "--supersample", help="Rays per pixel = N² (area sampling)."),
     width: int = typer.Option(640, "--width", help="Image width, px."),
     image_height: int = typer.Option(512, "--image-height", help="Image height, px."),

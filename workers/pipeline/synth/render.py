@@ -83,7 +83,7 @@ class SensorOptions:
     psf_sigma_px: float = 0.6  # Gaussian optical blur, pixels
     netd_k: float = 0.05  # temporal noise (noise-equivalent temperature difference), K
     column_noise_k: float = 0.03  # fixed-pattern column offsets (same in every frame), K
-    vignetting_k: float = -0.3  # offset at the image corners, quadratic in the radius, K
+    vignetting_k: float = -0.2  # offset at the image corners, quadratic in the radius, K
     supersample: int = 1  # rays per pixel = supersample²
 
 
