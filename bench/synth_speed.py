@@ -12,13 +12,22 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from workers.pipeline.synth import BUNDLED_MODEL, SynthOptions, procedural_block, synthesize
+from db.citygml.reader import read_model
+from workers.pipeline.synth import (
+    BUNDLED_MODEL,
+    SynthOptions,
+    procedural_block,
+    synthesize,
+    write_synthetic_package,
+)
 
 
 def fps(result, n: int) -> dict:
@@ -74,8 +83,6 @@ def main() -> None:
     }
     flight = synthesize(block, SynthOptions(platform="flight", n_frames=n + 1, seed=1, buildings=5))
     out["procedural_20_flight"] = {"scene_buildings": len(flight.buildings), **fps(flight, n)}
-    from db.citygml.reader import read_model
-
     _, berlin = read_model(BUNDLED_MODEL)
     real = synthesize(berlin, SynthOptions(platform="drive", n_frames=n + 1, seed=1, buildings=5))
     out["berlin_61_drive"] = {
@@ -84,11 +91,6 @@ def main() -> None:
         **fps(real, n),
     }
     # end to end: render + write 16-bit PNGs, imu.csv, manifest and truth
-    import tempfile
-    from pathlib import Path
-
-    from workers.pipeline.synth import write_synthetic_package
-
     t0 = time.perf_counter()
     small = synthesize(block, SynthOptions(platform="drive", n_frames=n, seed=2, buildings=5))
     t_setup = time.perf_counter() - t0
