@@ -97,3 +97,30 @@ def test_cluster_choice(block):
     assert len(choose_cluster(block, 6, seed=9)) == 6
     with pytest.raises(SynthError, match="unknown building"):
         choose_cluster(block, ["nope"])
+
+
+def test_procedural_houses_are_closed_and_outward(block):
+    from workers.pipeline.geometry import fit_plane, newell_normal
+
+    for b in block[:5]:
+        lo, hi = b.bounds()
+        centre = 0.5 * (lo + hi)
+        area = np.zeros(3)
+        for poly in b.polygons:
+            plane = fit_plane(poly)
+            assert plane.max_deviation < 1e-9
+            assert plane.normal @ (plane.centroid - centre) > 0  # normals point out of the house
+            area += newell_normal(poly.exterior.coords)
+        assert np.abs(area).max() < 1e-6  # a closed surface: area vectors cancel
+
+
+def test_trajectory_laps_repeat(block):
+    loop, _ = drive_loop(block, choose_cluster(block, 2, seed=3), DriveOptions())
+    traj = PathTrajectory(loop, 2.0, 8.0, start_m=5.0, t0=0.0)
+    lap = traj.length / 8.0
+    t = np.array([0.3, 7.1, 12.9])
+    P0, A0 = traj.state(t)
+    P1, A1 = traj.state(t + 3 * lap)
+    assert np.allclose(P0, P1, atol=1e-6)
+    assert np.allclose((A1[:, 2] - A0[:, 2] + 180) % 360 - 180, 0.0, atol=1e-6)
+    assert np.all((A0[:, 2] >= 0) & (A0[:, 2] < 360))
