@@ -29,6 +29,7 @@ from sqlalchemy.orm import Session
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.errors import InputDataError, NotFoundError
 from db.geomcodec import encode_point_z, encode_polygon_z
+from db.jobs import create_job
 from db.ops import copy_rows, reserve_ids
 from workers.pipeline.citymodel import Appearance, ParameterizedTexture
 from workers.pipeline.pose import Pose
@@ -139,27 +140,6 @@ def to_kelvin(value: float | None, unit: str) -> float | None:
 
 def _f(v: float | None) -> float | None:
     return None if v is None or not np.isfinite(v) else float(v)
-
-
-def create_job(
-    session: Session,
-    *,
-    model_id: int,
-    theme: str = "thermal-ir",
-    sequence_id: int | None = None,
-    options: Mapping[str, Any] | None = None,
-    job_id: uuid.UUID | None = None,
-) -> uuid.UUID:
-    """Insert a job row (status `accepted`) and return its id; the caller commits."""
-    jid = job_id or uuid.uuid4()
-    session.execute(
-        text(
-            "INSERT INTO job (id, city_model_id, sequence_id, theme, status, progress, options, timings_s) "
-            "VALUES (:id, :m, :seq, :theme, 'accepted', 0, CAST(:opt AS jsonb), '{}'::jsonb)"
-        ),
-        {"id": jid, "m": model_id, "seq": sequence_id, "theme": theme, "opt": _json(dict(options or {}))},
-    )
-    return jid
 
 
 def _json(v: Any) -> str:
@@ -312,6 +292,18 @@ def _write(
             )
         )
     copy_rows(conn, "frame_pose", POSE_COLUMNS, pose_rows)
+    if pose_rows:  # link the job's registered frames, and their priors where none were given
+        conn.execute(
+            text(
+                "UPDATE frame_pose fp SET frame_id = f.id, "
+                "prior_center = COALESCE(fp.prior_center, CASE WHEN f.prior_center IS NULL THEN NULL "
+                "ELSE ARRAY[ST_X(f.prior_center), ST_Y(f.prior_center), ST_Z(f.prior_center)] END), "
+                "prior_rotation = COALESCE(fp.prior_rotation, f.prior_rotation) "
+                "FROM job j JOIN frame f ON f.sequence_id = j.sequence_id "
+                "WHERE j.id = :j AND fp.job_id = :j AND fp.building_id = :b AND f.index = fp.frame_index"
+            ),
+            p,
+        )
     an_rows = []
     for a in result.anomalies:
         ring = np.asarray(a.outline, dtype=np.float64)

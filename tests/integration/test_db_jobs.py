@@ -1,0 +1,121 @@
+"""Job and unit states in the database, decided from the units; sequences with frames; poses of a
+stored result linked to the job's frames and priors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sqlalchemy import text
+from sqlalchemy.orm import Session
+
+from db.citygml.reader import read_model
+from db.importer import import_citygml
+from db.jobs import (
+    StateError,
+    add_units,
+    create_job,
+    dismiss_job,
+    finish_job_if_done,
+    job_counts,
+    register_sequence,
+    set_job_status,
+    set_unit_status,
+)
+from db.store import store_building_result
+from tests.conftest import DATA
+from tests.integration.test_db_store_export import make_result
+from workers.pipeline.camera import Camera
+from workers.pipeline.citymodel import Building
+from workers.pipeline.pose import Pose
+from workers.pipeline.sequence import FrameRecord, Mounting, Radiometry, SequenceManifest
+
+pytestmark = pytest.mark.integration
+
+
+def _manifest(n: int) -> SequenceManifest:
+    frames = tuple(
+        FrameRecord(
+            i, f"frames/{i:06d}.png", 0.1 * i, np.array([691000.0 + i, 5334000.0, 520.0]), np.zeros(3)
+        )
+        for i in range(n)
+    )
+    cam = Camera(width=640, height=512, fx=800.0, fy=800.0, cx=319.5, cy=255.5)
+    return SequenceManifest("car", "EPSG:25832", cam, Radiometry(), Mounting(np.eye(3)), frames)
+
+
+def test_job_lifecycle_and_sequence(db_engine) -> None:
+    s = import_citygml(db_engine, DATA / "berlin-61-buildings-citygml1-lod2.gml", name="jobs-berlin")
+
+    _, buildings = read_model(DATA / "berlin-61-buildings-citygml1-lod2.gml")
+    b0: Building = buildings[0]
+    priors = [Pose(np.eye(3), np.array([691000.0 + i, 5334000.0, 521.5])) for i in range(3)]
+    with Session(db_engine) as session:
+        seq = register_sequence(
+            session,
+            name="drive-1",
+            manifest=_manifest(3),
+            manifest_json={"format": "citytherm-sequence/1"},
+            storage_location="/data/drive-1",
+            srid=25832,
+            priors=priors,
+        )
+        job = create_job(session, model_id=s.model_id, theme="tir", sequence_id=seq)
+        assert add_units(session, job_id=job, building_gml_ids=[b.id for b in buildings[:3]]) == 3
+        assert add_units(session, job_id=job, building_gml_ids=[buildings[0].id]) == 3  # idempotent
+        set_job_status(session, job_id=job, status="running")
+        with pytest.raises(StateError):
+            set_job_status(session, job_id=job, status="accepted")
+        set_unit_status(session, job_id=job, building_gml_id=buildings[1].id, status="running")
+        set_unit_status(session, job_id=job, building_gml_id=buildings[1].id, status="failed", error="boom")
+        assert finish_job_if_done(session, job_id=job) == "running"
+        session.commit()
+    with Session(db_engine) as session:
+        store_building_result(
+            session, job_id=job, model_id=s.model_id, result=make_result(b0, "tir", 9, Radiometry())
+        )
+    with Session(db_engine) as session:
+        # a late duplicate delivery cannot undo the stored result
+        set_unit_status(session, job_id=job, building_gml_id=b0.id, status="running")
+        assert job_counts(session, job_id=job) == {
+            "accepted": 1,
+            "running": 0,
+            "successful": 1,
+            "failed": 1,
+            "dismissed": 0,
+        }
+        set_unit_status(session, job_id=job, building_gml_id=buildings[2].id, status="failed", error="x")
+        assert finish_job_if_done(session, job_id=job) == "successful"
+        session.commit()
+    with db_engine.connect() as c:
+        j = c.execute(
+            text("SELECT status, progress, finished_at IS NOT NULL, message FROM job WHERE id = :j"),
+            {"j": job},
+        ).one()
+        assert j[:3] == ("successful", 1.0, True) and "1 of 3" in j[3]
+        seq_row = c.execute(
+            text(
+                "SELECT frame_count, ST_NPoints(trajectory), ST_SRID(trajectory) FROM sequence WHERE id = :s"
+            ),
+            {"s": seq},
+        ).one()
+        assert tuple(seq_row) == (3, 3, 25832)
+        poses = c.execute(
+            text(
+                "SELECT frame_index, frame_id IS NOT NULL, prior_center, refined_center FROM frame_pose "
+                "WHERE job_id = :j ORDER BY frame_index"
+            ),
+            {"j": job},
+        ).all()
+    assert [p[0] for p in poses] == [0, 1] and all(p[1] for p in poses)
+    for p in poses:
+        np.testing.assert_array_equal(p[2], priors[p[0]].center)
+    # dismissing a finished job is refused; a fresh one is dismissed with its pending units
+    with Session(db_engine) as session:
+        with pytest.raises(StateError):
+            dismiss_job(session, job_id=job)
+        session.rollback()
+        job2 = create_job(session, model_id=s.model_id, theme="tir-2")
+        add_units(session, job_id=job2)
+        dismiss_job(session, job_id=job2)
+        assert job_counts(session, job_id=job2)["dismissed"] == len(buildings)
+        session.commit()
