@@ -4,7 +4,8 @@ results format (`spec/results-format.md`: `textured.gml`, `textures/*.png`).
 In: a database (Engine, sessionmaker or URL), a model (name or id), optionally a theme, a job and a
 2D bbox in the model CRS. Out: `OUT/textured.gml` written by `db.citygml.writer.write_citygml`
 from `Building` and `Appearance` dataclasses rebuilt from the rows (ids, ring ids, coordinates
-bit-exact, texture coordinates exact), and `OUT/<imageURI>` for every stored texture image.
+bit-exact, texture coordinates exact), `OUT/<imageURI>` for every stored texture image, and
+`OUT/anomalies.geojson` with the exported jobs' heat-leak candidates.
 
 Streamed: the top-level building ids are listed first (one integer each), then buildings are
 fetched in batches of `ExportOptions.batch_size` and handed to the writer one by one, so memory
@@ -16,6 +17,7 @@ theme only that theme's appearances are written, and only buildings that have on
 
 from __future__ import annotations
 
+import json
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Mapping, Sequence
@@ -61,6 +63,7 @@ class ExportSummary:
     buildings: int
     textures: int
     seconds: float
+    anomalies: int = 0
 
 
 @dataclass(frozen=True)
@@ -396,4 +399,49 @@ def export_citygml(
             model_appearances=[*own_model.get(None, []), *extra_model.get(None, [])],  # type: ignore[call-overload]
             name=m["gml_name"],
         )
-    return ExportSummary(path=gml, buildings=n, textures=images.count, seconds=time.perf_counter() - t0)
+        n_anomalies = _write_anomalies(conn, f, roots, m["srs_name"], out / "anomalies.geojson")
+    return ExportSummary(
+        path=gml, buildings=n, textures=images.count, seconds=time.perf_counter() - t0, anomalies=n_anomalies
+    )
+
+
+def _write_anomalies(
+    conn: Connection, f: _Filter, roots: Sequence[int], srs_name: str | None, path: Path
+) -> int:
+    """`anomalies.geojson` (results format) for the anomalies of the exported job appearances;
+    written when there are any, or when a theme or job was asked for. Returns their number."""
+    rows = conn.execute(
+        text(
+            "SELECT b.gml_id AS building, s.gml_id AS surface, ST_AsBinary(ta.outline) AS outline, "
+            "ta.centre, "
+            "ta.area_m2, ta.peak_delta_k, ta.mean_delta_k, ta.kind FROM thermal_anomaly ta "
+            "JOIN appearance a ON a.id = ta.appearance_id JOIN building b ON b.id = ta.building_id "
+            "LEFT JOIN surface s ON s.id = ta.surface_id "
+            f"WHERE ta.building_id = ANY(:roots) AND {f.appearance_sql()} ORDER BY b.ordinal, ta.id"
+        ),
+        {**f.params(), "roots": list(roots)},
+    ).mappings()
+    features = []
+    for r in rows:
+        rings = polygon_rings_from_wkb(r["outline"]) if r["outline"] is not None else []
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Polygon", "coordinates": [ring.tolist() for ring in rings]},
+                "properties": {
+                    "building": r["building"],
+                    "surface": r["surface"],
+                    "centre": list(r["centre"]),
+                    "area_m2": r["area_m2"],
+                    "peak_delta_k": r["peak_delta_k"],
+                    "mean_delta_k": r["mean_delta_k"],
+                    "kind": r["kind"],
+                },
+            }
+        )
+    if features or f.theme is not None or f.job_id is not None:
+        doc: dict[str, Any] = {"type": "FeatureCollection", "features": features}
+        if srs_name:
+            doc["crs"] = {"type": "name", "properties": {"name": srs_name}}
+        path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return len(features)

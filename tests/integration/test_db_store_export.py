@@ -5,6 +5,7 @@ apart; storing is idempotent and a failure half way leaves nothing partial; the 
 from __future__ import annotations
 
 import hashlib
+import json
 import uuid
 from pathlib import Path
 
@@ -180,6 +181,14 @@ def test_export_equals_in_process_results(model, tmp_path) -> None:
             assert tg.polygon_id == ti.polygon_id and list(tg.ring_coords) == list(ti.ring_coords)
             for rid, st in ti.ring_coords.items():
                 np.testing.assert_allclose(tg.ring_coords[rid], st, rtol=0, atol=1e-12)
+    # anomalies.geojson in the results format
+    doc = json.loads((tmp_path / "db" / "anomalies.geojson").read_text())
+    assert out.anomalies == 1 and doc["crs"]["properties"]["name"] == header.srs_name
+    (feat,) = doc["features"]
+    (an,) = result.anomalies
+    assert feat["properties"]["building"] == building.id and feat["properties"]["surface"] == an.polygon_id
+    np.testing.assert_array_equal(np.array(feat["geometry"]["coordinates"][0]), an.outline)
+    assert feat["properties"]["peak_delta_k"] == an.peak_delta_k
     for t in result.tiles:
         data = (tmp_path / "db" / t.name).read_bytes()
         assert data == (ref / t.name).read_bytes() == cv2.imencode(".png", t.dn)[1].tobytes()
