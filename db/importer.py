@@ -7,12 +7,14 @@ plane, geometry checks) and the file's appearances (`appearance` → `surface_da
 `texture_param`); an `ImportSummary`.
 
 Buildings are written with `COPY` in batches of `ImportOptions.batch_size` top-level buildings,
-one transaction per batch; geometries are built in Python as hex EWKB (`db.geomcodec`). Row ids are
-reserved from the sequences first so parents, surfaces and texture targets are linked without a
-round trip. For big files the GiST indexes can be dropped during the load and rebuilt once at the
-end (`ImportOptions.defer_spatial_indexes`). A model name that exists is refused
-(`ModelExistsError`) unless `replace=True`, which deletes the old model first. A failed import
-deletes what it wrote.
+one transaction per batch. The COPY text of a batch (geometries as hex EWKB built in Python with
+numpy, planes, footprints, envelopes, checks: `db.import_rows`) is made where the file is read; for
+big files that is a separate reader process (`db.import_stream`), so parsing overlaps with the
+database's work. Row ids are reserved from the sequences in one round trip per batch, so parents,
+roots, surfaces and texture targets are linked without further queries. For big files the GiST
+indexes are dropped during the load and rebuilt once at the end
+(`ImportOptions.defer_spatial_indexes`). A model name that exists is refused (`ModelExistsError`)
+unless `replace=True`, which deletes the old model first. A failed import deletes what it wrote.
 """
 
 from __future__ import annotations
