@@ -28,12 +28,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import psycopg
 from sqlalchemy import Connection, Engine, text
+from sqlalchemy.exc import IntegrityError
 
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
 from db.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
-from db.errors import ModelExistsError
+from db.errors import InputDataError, ModelExistsError
 from db.geomcodec import encode_envelope
 from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
 from db.import_stream import BatchStream
@@ -298,9 +300,13 @@ def import_citygml(
             conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")
             conn.exec_driver_sql("ANALYZE surface (city_model_id, building_id)")
         timings["finish"] = time.perf_counter() - t_fin
-    except BaseException:
+    except BaseException as exc:
         with engine.begin() as conn:
             delete_model(conn, model_id)
+        if isinstance(exc, IntegrityError | psycopg.errors.IntegrityError):
+            orig = getattr(exc, "orig", None) or exc
+            detail = " ".join(str(orig).split())
+            raise InputDataError(f"{path}: cannot be stored as one model ({detail})") from exc
         raise
     finally:
         if defer:

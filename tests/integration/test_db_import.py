@@ -15,7 +15,7 @@ from db.citygml.names import CityGMLError
 from db.citygml.reader import read_model
 from db.citygml.validate import validate_citygml2
 from db.crs import horizontal_epsg
-from db.errors import ModelExistsError
+from db.errors import InputDataError, ModelExistsError
 from db.export import export_citygml
 from db.geomcodec import polygon_rings_from_wkb
 from db.importer import ImportOptions, import_citygml
@@ -262,3 +262,14 @@ def test_parallel_reader_writes_the_same_rows(db_engine, tmp_path) -> None:
     with pytest.raises(CityGMLError):
         import_citygml(db_engine, broken, name="par-broken", options=ImportOptions(parallel_read=True))
     assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name = 'par-broken'") == 0
+
+
+def test_duplicate_building_ids_refused_by_name(db_engine, tmp_path) -> None:
+    data = (DATA / "bavaria-1-building-citygml2-lod2.gml").read_text(encoding="utf-8")
+    start = data.index("<core:cityObjectMember>")
+    end = data.index("</core:cityObjectMember>") + len("</core:cityObjectMember>")
+    twice = tmp_path / "twice.gml"
+    twice.write_text(data[:end] + "\n" + data[start:end] + data[end:], encoding="utf-8")
+    with pytest.raises(InputDataError, match=r"twice\.gml.*uq_building_model_gml_id"):
+        import_citygml(db_engine, twice, name="twice")
+    assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name = 'twice'") == 0
