@@ -380,3 +380,38 @@ def test_untextured_building_result(model, tmp_path) -> None:
             text("SELECT observed_share FROM building_thermal WHERE theme = 'tir-empty'")
         ).scalar_one()
     assert n == 0 and share == 0.0
+
+
+def test_concurrent_duplicate_deliveries_leave_one_copy(model) -> None:
+    """The same unit result delivered twice at once (two workers): exactly one copy remains."""
+    import threading
+
+    engine, model_id, _, building = model
+    job = _new_job(engine, model_id, "thermal-ir")
+    result = make_result(building, "thermal-ir", seed=8, radiometry=Radiometry())
+    errors: list[BaseException] = []
+    barrier = threading.Barrier(3)
+
+    def deliver() -> None:
+        try:
+            with Session(engine) as session:
+                barrier.wait(timeout=10)
+                store_building_result(session, job_id=job, model_id=model_id, result=result)
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=deliver) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert errors == []
+    assert _counts(engine, job) == {
+        "appearance": 1,
+        "surface_data": 2,
+        "texture_param": TEXTURED,
+        "tex_image": 2,
+        "surface_thermal": len(result.surfaces),
+        "frame_pose": 2,
+        "thermal_anomaly": 1,
+    }
