@@ -19,20 +19,41 @@ from dataclasses import dataclass
 import numpy as np
 
 from db.geomcodec import encode_envelope, encode_footprints, encode_polygons
-from db.ops import copy_field, pg_bool_array, pg_float_array, pg_text_array
+from db.ops import copy_field, pg_bool_array, pg_text_array
 from db.surface_checks import jsonable, surface_checks
 from workers.pipeline.citymodel import Appearance, Building, Polygon
 
 __all__ = ["BUILDING_TAIL", "SURFACE_TAIL", "BatchLines", "batch_lines"]
 
 BUILDING_TAIL = (
-    "gml_id", "is_part", "name", "srs_name", "generated_id", "attributes", "footprint", "envelope",
-)  # fmt: skip
+    "gml_id",
+    "is_part",
+    "name",
+    "srs_name",
+    "generated_id",
+    "attributes",
+    "footprint",
+    "envelope",
+)
 SURFACE_TAIL = (
-    "ordinal", "gml_id", "generated_id", "ring_ids", "ring_generated", "ring_closed", "surface_class",
-    "surface_gml_id", "lod", "in_solid", "collection_id", "geometry", "raw_rings", "plane_normal",
-    "plane_offset", "area_m2", "checks",
-)  # fmt: skip
+    "ordinal",
+    "gml_id",
+    "generated_id",
+    "ring_ids",
+    "ring_generated",
+    "ring_closed",
+    "surface_class",
+    "surface_gml_id",
+    "lod",
+    "in_solid",
+    "collection_id",
+    "geometry",
+    "raw_rings",
+    "plane_normal",
+    "plane_offset",
+    "area_m2",
+    "checks",
+)
 
 
 @dataclass(frozen=True)
@@ -59,11 +80,6 @@ class BatchLines:
     owner: list[int]
     appearances: list[tuple[int, tuple[Appearance, ...]]]
     polygon_ids: list[str]
-
-
-def _num(v: float) -> str:
-    """A Python float -> COPY text (NULL for NaN/inf)."""
-    return repr(v) if v == v and v not in (float("inf"), float("-inf")) else "\\N"
 
 
 def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
@@ -104,13 +120,24 @@ def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
         attrs = json.dumps(jsonable(dict(b.attributes))) if b.attributes else "{}"
         b_tails.append(
             "\t".join(
-                (f(b.id), "t" if b.is_part else "f", f(b.name), f(b.srs_name), "t" if b.generated_id else "f",
-                 f(attrs), f(fp), f(env))
+                (
+                    f(b.id),
+                    "t" if b.is_part else "f",
+                    f(b.name),
+                    f(b.srs_name),
+                    "t" if b.generated_id else "f",
+                    f(attrs),
+                    f(fp),
+                    f(env),
+                )
             )
-        )  # fmt: skip
-    finite_n = np.all(np.isfinite(enc.normal), axis=1)
-    normal_l = enc.normal.tolist()
-    offset_l, area_l = enc.offset.tolist(), enc.area.tolist()
+        )
+    null = "\\N"
+    normal_s = [
+        f"{{{a!r},{b!r},{c!r}}}" if a == a and b == b and c == c else null for a, b, c in enc.normal.tolist()
+    ]
+    offset_s = [repr(v) if v == v else null for v in enc.offset.tolist()]
+    area_s = [repr(v) if v == v else null for v in enc.area.tolist()]
     s_tails = []
     ordinal = 0
     last_owner = -1
@@ -122,14 +149,27 @@ def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
         rings = p.rings
         s_tails.append(
             "\t".join(
-                (str(ordinal), f(p.id), "t" if p.generated_id else "f",
-                 f(pg_text_array([r.id for r in rings])), pg_bool_array([r.generated_id for r in rings]),
-                 pg_bool_array(enc.ring_closed[k]), f(p.surface_class), f(p.surface_id), str(int(p.lod)),
-                 "t" if p.in_solid else "f", f(p.collection_id), ewkb if ewkb is not None else "\\N", f(raw),
-                 pg_float_array(normal_l[k]) if finite_n[k] else "\\N", _num(offset_l[k]),
-                 _num(area_l[k]), f(checks_json[k]))
+                (
+                    str(ordinal),
+                    f(p.id),
+                    "t" if p.generated_id else "f",
+                    f(pg_text_array([r.id for r in rings])),
+                    pg_bool_array([r.generated_id for r in rings]),
+                    pg_bool_array(enc.ring_closed[k]),
+                    f(p.surface_class),
+                    f(p.surface_id),
+                    str(p.lod),
+                    "t" if p.in_solid else "f",
+                    f(p.collection_id),
+                    ewkb if ewkb is not None else null,
+                    f(raw),
+                    normal_s[k],
+                    offset_s[k],
+                    area_s[k],
+                    f(checks_json[k]),
+                )
             )
-        )  # fmt: skip
+        )
         ordinal += 1
     apps = [(i, b.appearances) for i, b in enumerate(flat) if b.appearances]
     return BatchLines(

@@ -73,11 +73,19 @@ def pg_text_array(values: Sequence[str]) -> str:
     >>> pg_text_array(['a', 'b"c'])
     '{"a","b\\\\"c"}'
     """
+    joined = '","'.join(values)
+    if "\\" not in joined and '"' not in "".join(values):
+        return '{"' + joined + '"}' if values else "{}"
     return "{" + ",".join('"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"' for v in values) + "}"
+
+
+_BOOL_ARRAYS = {(True,): "{t}", (False,): "{f}"}
 
 
 def pg_bool_array(values: Sequence[bool]) -> str:
     """A `boolean[]` literal."""
+    if len(values) == 1:
+        return _BOOL_ARRAYS[(bool(values[0]),)]
     return "{" + ",".join("t" if v else "f" for v in values) + "}"
 
 
