@@ -14,13 +14,16 @@ database's work. Row ids are reserved from the sequences in one round trip per b
 roots, surfaces and texture targets are linked without further queries. For big files the GiST
 indexes are dropped during the load and rebuilt once at the end
 (`ImportOptions.defer_spatial_indexes`). A model name that exists is refused (`ModelExistsError`)
-unless `replace=True`, which deletes the old model first. A failed import deletes what it wrote.
+unless `replace=True`: the new model is then loaded under a temporary name and replaces the old
+one in the final transaction, so a failed import leaves the old model as it was. A failed import
+deletes what it wrote.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+import uuid
 from dataclasses import dataclass, field
 from functools import partial
 from os import PathLike
@@ -155,17 +158,14 @@ def _write_lines(conn: Connection, lines: BatchLines, model_id: int, ordinal0: i
 def _start_model(
     engine: Engine, header: ModelHeader, path: Path, name: str, srid: int, replace: bool
 ) -> tuple[int, bool]:
-    """Create the `city_model` row (deleting an old one of that name with `replace`)."""
+    """Create the `city_model` row. When a model of that name exists (and `replace` is set) the
+    new one is loaded under a temporary name and takes over in `_finish_model`, so the old model
+    stays intact until the new one is complete."""
     with engine.begin() as conn:
-        old = conn.execute(text("SELECT id FROM city_model WHERE name = :n FOR UPDATE"), {"n": name}).first()
-        replaced = False
-        if old is not None:
-            if not replace:
-                raise ModelExistsError(
-                    f"city model {name!r} exists already (import with replace to overwrite)"
-                )
-            delete_model(conn, old[0])
-            replaced = True
+        old = conn.execute(text("SELECT id FROM city_model WHERE name = :n"), {"n": name}).first()
+        replaced = old is not None
+        if replaced and not replace:
+            raise ModelExistsError(f"city model {name!r} exists already (import with replace to overwrite)")
         model_id = conn.execute(
             text(
                 "INSERT INTO city_model (name, srs_name, srid, vertical_epsg, citygml_version, gml_name, "
@@ -173,7 +173,7 @@ def _start_model(
                 "VALUES (:name, :srs, :srid, :vert, :ver, :gname, :src, 0, 0, 0, 'importing') RETURNING id"
             ),
             {
-                "name": name,
+                "name": f"{name}#importing-{uuid.uuid4().hex}" if replaced else name,
                 "srs": header.srs_name,
                 "srid": srid,
                 "vert": _vertical(header.srs_name),
@@ -191,7 +191,17 @@ def _start_model(
     return model_id, replaced
 
 
-def _finish_model(conn: Connection, model_id: int, counts: dict[str, int], late: list[Appearance]) -> None:
+def _finish_model(
+    conn: Connection, model_id: int, name: str, counts: dict[str, int], late: list[Appearance]
+) -> None:
+    """Late appearances, cross-batch texture targets, counts, envelope; the model takes its name
+    (replacing an older model of that name in the same transaction)."""
+    old = conn.execute(
+        text("SELECT id FROM city_model WHERE name = :n AND id <> :m FOR UPDATE"), {"n": name, "m": model_id}
+    ).first()
+    if old is not None:
+        delete_model(conn, old[0])
+    conn.execute(text("UPDATE city_model SET name = :n WHERE id = :m"), {"n": name, "m": model_id})
     if late:
         rows = AppearanceRows()
         collect_appearance_rows(rows, late, model_id=model_id, building_row=None, surface_row={})
@@ -294,7 +304,7 @@ def import_citygml(
         counts["appearances"] += len(late)
         t_fin = time.perf_counter()
         with engine.begin() as conn:
-            _finish_model(conn, model_id, counts, late)
+            _finish_model(conn, model_id, name, counts, late)
         with engine.begin() as conn:
             # planner statistics for the key columns (geometry statistics are slow to gather)
             conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")

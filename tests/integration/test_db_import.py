@@ -195,6 +195,17 @@ def test_failed_import_leaves_nothing(db_engine, monkeypatch) -> None:
     assert calls["n"] == 2
     assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name = 'fails'") == 0
     assert _scalar(db_engine, "SELECT count(*) FROM building") == before
+    # a failed replacement leaves the old model as it was
+    monkeypatch.setattr(importer_mod, "_write_lines", real)
+    old = import_citygml(db_engine, path, name="fails-replace")
+    calls["n"] = 0
+    monkeypatch.setattr(importer_mod, "_write_lines", failing)
+    with pytest.raises(RuntimeError, match="simulated"):
+        import_citygml(
+            db_engine, path, name="fails-replace", replace=True, options=ImportOptions(batch_size=20)
+        )
+    assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name LIKE 'fails-replace%'") == 1
+    assert _scalar(db_engine, "SELECT count(*) FROM building WHERE city_model_id = :m", m=old.model_id) == 61
 
 
 def test_deferred_indexes_and_bbox_export(db_engine, tmp_path) -> None:
