@@ -415,3 +415,59 @@ def test_concurrent_duplicate_deliveries_leave_one_copy(model) -> None:
         "frame_pose": 2,
         "thermal_anomaly": 1,
     }
+
+
+def test_stored_result_reads_back(model) -> None:
+    """store -> load gives the same BuildingResult (the service writes report/orientation from it)."""
+    from db.jobs import add_units
+    from db.result_load import load_building_result
+
+    engine, model_id, _, building = model
+    job = _new_job(engine, model_id, "thermal-ir")
+    with Session(engine) as session:
+        add_units(session, job_id=job, building_gml_ids=[building.id])
+        session.commit()
+    r = make_result(
+        building, "thermal-ir", seed=10, radiometry=Radiometry(unit="degC", scale=0.02, offset=-40.0)
+    )
+    with Session(engine) as session:
+        store_building_result(session, job_id=job, model_id=model_id, result=r)
+        back = load_building_result(session, job_id=job, model_id=model_id, building_gml_id=building.id)
+    assert back.building_id == r.building_id and back.timings_s == dict(r.timings_s)
+    assert (back.radiometry.unit, back.radiometry.scale, back.radiometry.offset) == ("degC", 0.02, -40.0)
+    assert back.appearance.theme == r.appearance.theme and back.appearance.id == r.appearance.id
+    for sd_b, sd_r in zip(back.appearance.surface_data, r.appearance.surface_data, strict=True):
+        assert (sd_b.id, sd_b.image_uri) == (sd_r.id, sd_r.image_uri)
+        for tb, tr in zip(sd_b.targets, sd_r.targets, strict=True):
+            assert tb.polygon_id == tr.polygon_id and list(tb.ring_coords) == list(tr.ring_coords)
+            for rid in tr.ring_coords:
+                np.testing.assert_array_equal(tb.ring_coords[rid], tr.ring_coords[rid])
+    assert [t.name for t in back.tiles] == [t.name for t in r.tiles]
+    for tb, tr in zip(back.tiles, r.tiles, strict=True):
+        assert tb.dn.dtype == np.uint16
+        np.testing.assert_array_equal(tb.dn, tr.dn)
+    assert len(back.surfaces) == len(r.surfaces)
+    for sb, sr in zip(back.surfaces, r.surfaces, strict=True):
+        assert (sb.polygon_id, sb.building_id, sb.surface_class) == (
+            sr.polygon_id,
+            sr.building_id,
+            sr.surface_class,
+        )
+        assert (sb.texels_total, sb.texels_observed, sb.frames_used) == (
+            sr.texels_total,
+            sr.texels_observed,
+            sr.frames_used,
+        )
+        assert sb.mean_resolution_m == sr.mean_resolution_m and dict(sb.temperature) == dict(sr.temperature)
+    for pb, pr in zip(back.poses, r.poses, strict=True):
+        assert (pb.frame, pb.status, pb.matches, pb.rms_px) == (pr.frame, pr.status, pr.matches, pr.rms_px)
+        np.testing.assert_array_equal(pb.pose.center, pr.pose.center)
+        np.testing.assert_array_equal(pb.pose.R_world_from_cam, pr.pose.R_world_from_cam)
+    (ab,), (ar,) = back.anomalies, r.anomalies
+    np.testing.assert_array_equal(ab.outline, ar.outline)
+    assert (ab.polygon_id, ab.area_m2, ab.peak_delta_k, ab.kind) == (
+        ar.polygon_id,
+        ar.area_m2,
+        ar.peak_delta_k,
+        ar.kind,
+    )
