@@ -179,7 +179,16 @@ def _gcps(
 
 
 def synthesize(buildings: Sequence[Building], options: SynthOptions | None = None) -> SynthResult:
-    """Build a synthetic sequence of `buildings` (see the module docstring)."""
+    """Build a synthetic sequence of `buildings` (model CRS, metres).
+
+    Steps: choose the cluster (`options.buildings`), the ground plane (median base of the
+    cluster), the closed drive/flight loop and its `PathTrajectory`; keep the buildings near the
+    loop as the rendered scene (`SceneMesh`, `ThermalScene` from `options.seed`); stamp
+    `n_frames` frames every `frame_interval_s` from `t0`; run the GNSS/INS error model (recorded
+    INS at the stamps, true poses at `stamp − δ` with the true mounting); add GCPs if asked.
+    Nothing is rendered here: `result.frames` renders on access. Raises `SynthError` naming the
+    bad option or input.
+    """
     o = options or SynthOptions()
     blds = list(buildings)
     if not blds:
