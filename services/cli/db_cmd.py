@@ -108,7 +108,10 @@ def export_cmd(
     except CityDBError as exc:
         console.print(f"[red]export failed:[/red] {exc}")
         raise typer.Exit(1) from exc
-    console.print(f"wrote {s.path} ({s.buildings} buildings, {s.textures} textures) in {s.seconds:.1f} s")
+    console.print(
+        f"wrote {s.path} ({s.buildings} buildings, {s.textures} textures, {s.anomalies} anomalies) "
+        f"in {s.seconds:.1f} s"
+    )
 
 
 def register(root: typer.Typer) -> None:
