@@ -18,6 +18,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from db.sequence_package import PackageError
 from workers.pipeline.synth import (
     BUNDLED_MODEL,
     DriveOptions,
@@ -166,7 +167,7 @@ def synth(
             task = progress.add_task("frames", total=frames)
             wrapped = _Progress(result.frames, progress, task)
             write_synthetic_package(result, out, truth, frames=wrapped)
-    except SynthError as exc:
+    except (SynthError, PackageError, OSError) as exc:
         console.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(code=1) from None
     tp = truth if truth is not None else out.with_name(out.name + ".truth.json")
