@@ -103,6 +103,9 @@ class CoregisterOptions:
     # ... with the wireframe of the whole scene of the ray caster (the building and its
     # neighbours: a row of similar houses is no longer ambiguous) or of the building alone ...
     joint_coarse_scene: bool = True
+    # ... the minimum must lower the typical mean edge distance by this share, else no joint
+    # correction is applied and every frame searches on its own ...
+    joint_coarse_min_gain: float = 0.35
     # ... and rolls about the optical axis (degrees; boresight errors of several degrees)
     joint_coarse_rolls_deg: tuple[float, ...] = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)
     # per-frame coarse search radius after the joint one, pixels (0: none; the per-frame search
@@ -298,7 +301,8 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
         feats_list.append(feats)
     if not poses:
         return None
-    common = joint_coarse(cam, poses, vis_list, feats_list, fo, options.joint_coarse_rolls_deg)
+    common = joint_coarse(cam, poses, vis_list, feats_list, fo, options.joint_coarse_rolls_deg,
+                          options.joint_coarse_min_gain)
     if common is None:
         return None
     return (common[0] * ds, *common[1:])

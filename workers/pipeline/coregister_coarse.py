@@ -122,6 +122,11 @@ def coarse_search(
     scores = scores + shift_penalty(scores.shape, options)[None]
     k, iy, ix = np.unravel_index(int(np.argmin(scores)), scores.shape)
     r = scores.shape[-1] // 2
+    # keep the pose unless the minimum is inside the window and clearly below the typical score
+    typical = float(np.median(scores))
+    inside = min(ix, iy) > 0 and max(ix, iy) < 2 * r
+    if not inside or scores[k, iy, ix] > (1.0 - options.coarse_min_gain) * typical:
+        return pose
     shift = np.array([ix - r, iy - r], dtype=np.float64) * options.coarse_level
     moved = Pose(pose.R_world_from_cam, pose.center + depths[k] * pose.R_world_from_cam[:, 2])
     uv, z = moved.project(camera, vis.points)

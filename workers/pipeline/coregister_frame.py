@@ -80,6 +80,9 @@ class FrameFitOptions:
     # coarse stage: penalty per level pixel of shift, in level pixels of mean distance (favours
     # the nearest of equally good minima)
     coarse_shift_penalty: float = 0.01
+    # coarse stage: the best candidate must lower the typical (median) score by this share and
+    # lie inside the search window, else the start pose is kept
+    coarse_min_gain: float = 0.35
     # coarse stage: an image shift is explained by a camera rotation and a camera translation
     # across the optical axis, split by these a-priori standard deviations (a shift of angle θ
     # at depth Z: rotation share σ_r² / (σ_r² + (σ_t / Z)²)) — translation dominates at close

@@ -56,13 +56,16 @@ def joint_coarse(
     features: list[ImageFeatures],
     options: FrameFitOptions,
     rolls_deg: tuple[float, ...] = (0.0,),
+    min_gain: float = 0.35,
 ) -> tuple[np.ndarray, float, float, float] | None:
     """Common coarse correction of several frames -> (image shift `(2,)` px at the principal
     point, depth offset along the optical axis (m), roll about it (rad), median depth (m)), or None
     without usable frames.
 
     The score maps of all frames over the same depth offsets (steps × the median sample depth)
-    and shifts are averaged; `apply_coarse` turns the result into each frame's pose.
+    and shifts are averaged; `apply_coarse` turns the result into each frame's pose. None also
+    when the minimum lies on the border of the search window or does not lower the typical score
+    by `min_gain` (no distinct common signal).
     """
     depths = []
     for pose, vis in zip(poses, visible, strict=True):
@@ -82,6 +85,13 @@ def joint_coarse(
     total = total / len(poses) + shift_penalty(total.shape, options)[None]
     k, iy, ix = np.unravel_index(int(np.argmin(total)), total.shape)
     r = total.shape[-1] // 2
+    # a minimum inside the search window, clearly below the typical score (mean edge distance
+    # reduced by at least `min_gain`); else the frames carry no usable common signal (e.g.
+    # close-range drives that see facade interiors and hardly any model edge)
+    best = float(total[k, iy, ix])
+    typical = float(np.median(total))
+    if min(ix, iy) == 0 or max(ix, iy) == 2 * r or best > (1.0 - min_gain) * typical:
+        return None
     shift = np.array([ix - r, iy - r], dtype=np.float64) * options.coarse_level
     kd, kq = divmod(int(k), len(rolls_deg))
     return shift, float(steps[kd]), float(np.radians(rolls_deg[kq])), dmed
