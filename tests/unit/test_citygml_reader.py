@@ -311,3 +311,27 @@ def test_srs_from_ancestor_and_parts(tmp_path: Path) -> None:
     assert b.parts[1].generated_id
     assert b.parts[0].srs_name == "EPSG:25833"
     assert header.srs_name is None or header.srs_name == b.srs_name
+
+
+def test_xlink_to_a_composite_surface(tmp_path: Path) -> None:
+    """A solid member referencing a CompositeSurface: all its polygons are solid members."""
+    composite = (
+        '<gml:CompositeSurface gml:id="CS1">'
+        f"<gml:surfaceMember>{polygon('A', square(0, 0, 0))}</gml:surfaceMember>"
+        f"<gml:surfaceMember>{polygon('B', square(1, 0, 0))}</gml:surfaceMember>"
+        "</gml:CompositeSurface>"
+    )
+    body = building(
+        "B1",
+        "<bldg:lod2Solid><gml:Solid><gml:exterior><gml:CompositeSurface>"
+        '<gml:surfaceMember xlink:href="#CS1"/>'
+        "</gml:CompositeSurface></gml:exterior></gml:Solid></bldg:lod2Solid>",
+        boundary("WallSurface", "W1", composite),
+        boundary("RoofSurface", "R1", polygon("C", square(0, 0, 3))),
+    )
+    (b,) = read_model(write_doc(tmp_path, body))[1]
+    assert [(p.id, p.in_solid, p.collection_id) for p in b.polygons] == [
+        ("A", True, "CS1"),
+        ("B", True, "CS1"),
+        ("C", False, None),
+    ]
