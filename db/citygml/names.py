@@ -93,11 +93,13 @@ class CityGMLError(ValueError):
     """A CityGML file that cannot be read (or a model that cannot be written).
 
     Attributes:
+        message: the problem, without file and line.
         path: the file, when known.
         line: 1-based line number of the offending element, when known.
     """
 
     def __init__(self, message: str, *, path: object = None, line: int | None = None) -> None:
+        self.message = message
         self.path = None if path is None else str(path)
         self.line = line
         where = ""

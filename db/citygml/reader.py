@@ -139,7 +139,7 @@ class _Stream:
             raise CityGMLError(f"XML error: {msg}", path=self.path, line=line) from None
         except CityGMLError as exc:
             if exc.path is None:
-                raise CityGMLError(str(exc).split(": ", 1)[-1], path=self.path, line=exc.line) from None
+                raise CityGMLError(exc.message, path=self.path, line=exc.line) from None
             raise
 
     def _events(self) -> Iterator[tuple[str, object]]:
