@@ -35,6 +35,7 @@ import psycopg
 from sqlalchemy import Connection, Engine, text
 from sqlalchemy.exc import IntegrityError
 
+from db.appearance_images import store_appearance_images
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
 from db.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
@@ -77,6 +78,7 @@ class ImportOptions:
         parallel_read: parse the file in a separate reader process while this one writes (None:
             for files larger than `parallel_above_bytes`; always in-process inside daemonic
             workers, which may not have children).
+        import_images: store the image files of the file's textures that lie in its folder.
     """
 
     batch_size: int = 250
@@ -86,6 +88,7 @@ class ImportOptions:
     huge_tree: bool = False
     parallel_read: bool | None = None
     parallel_above_bytes: int = 16 * 1024**2
+    import_images: bool = True
 
 
 @dataclass(frozen=True)
@@ -127,7 +130,9 @@ def _vertical(srs_name: str | None) -> int | None:
         return None
 
 
-def _write_lines(conn: Connection, lines: BatchLines, model_id: int, ordinal0: int) -> None:
+def _write_lines(
+    conn: Connection, lines: BatchLines, model_id: int, ordinal0: int, image_dir: Path | None = None
+) -> None:
     """Reserve ids, link parents/roots/owners and COPY one batch; then its appearances."""
     bids = reserve_ids(conn, "building", len(lines.building_tails))
     sids = reserve_ids(conn, "surface", len(lines.surface_tails))
@@ -152,11 +157,19 @@ def _write_lines(conn: Connection, lines: BatchLines, model_id: int, ordinal0: i
             collect_appearance_rows(
                 rows, apps, model_id=model_id, building_row=bids[i], surface_row=surface_row
             )
-        rows.write(conn, copy_rows, reserve_ids)
+        app_ids = rows.write(conn, copy_rows, reserve_ids)
+        if image_dir is not None:
+            store_appearance_images(conn, app_ids, image_dir)
 
 
 def _start_model(
-    engine: Engine, header: ModelHeader, path: Path, name: str, srid: int, replace: bool
+    engine: Engine,
+    header: ModelHeader,
+    path: Path,
+    name: str,
+    srid: int,
+    replace: bool,
+    image_dir: Path | None = None,
 ) -> tuple[int, bool]:
     """Create the `city_model` row. When a model of that name exists (and `replace` is set) the
     new one is loaded under a temporary name and takes over in `_finish_model`, so the old model
@@ -187,12 +200,19 @@ def _start_model(
             collect_appearance_rows(
                 rows, header.appearances, model_id=model_id, building_row=None, surface_row={}
             )
-            rows.write(conn, copy_rows, reserve_ids)
+            app_ids = rows.write(conn, copy_rows, reserve_ids)
+            if image_dir is not None:
+                store_appearance_images(conn, app_ids, image_dir)
     return model_id, replaced
 
 
 def _finish_model(
-    conn: Connection, model_id: int, name: str, counts: dict[str, int], late: list[Appearance]
+    conn: Connection,
+    model_id: int,
+    name: str,
+    counts: dict[str, int],
+    late: list[Appearance],
+    image_dir: Path | None = None,
 ) -> None:
     """Late appearances, cross-batch texture targets, counts, envelope; the model takes its name
     (replacing an older model of that name in the same transaction)."""
@@ -205,7 +225,9 @@ def _finish_model(
     if late:
         rows = AppearanceRows()
         collect_appearance_rows(rows, late, model_id=model_id, building_row=None, surface_row={})
-        rows.write(conn, copy_rows, reserve_ids)
+        app_ids = rows.write(conn, copy_rows, reserve_ids)
+        if image_dir is not None:
+            store_appearance_images(conn, app_ids, image_dir)
     # texture targets not resolved within their batch (CityModel-level appearances, cross-building)
     conn.execute(
         text(
@@ -264,7 +286,8 @@ def import_citygml(
     defer = opts.defer_spatial_indexes
     if defer is None:
         defer = path.stat().st_size > opts.defer_above_bytes
-    model_id, replaced = _start_model(engine, header, path, name, srid, replace)
+    image_dir = path.resolve().parent if opts.import_images else None
+    model_id, replaced = _start_model(engine, header, path, name, srid, replace, image_dir)
     counts = {"buildings": 0, "parts": 0, "surfaces": 0, "appearances": len(header.appearances)}
     late: list[Appearance] = []
     ordinal = 0
@@ -292,7 +315,7 @@ def import_citygml(
                 continue
             t_write = time.perf_counter()
             with engine.begin() as conn:
-                _write_lines(conn, obj, model_id, ordinal)
+                _write_lines(conn, obj, model_id, ordinal, image_dir=image_dir)
             timings["write"] += time.perf_counter() - t_write
             ordinal += len(obj.building_tails)
             n_parts = sum(obj.is_part)
@@ -304,7 +327,7 @@ def import_citygml(
         counts["appearances"] += len(late)
         t_fin = time.perf_counter()
         with engine.begin() as conn:
-            _finish_model(conn, model_id, name, counts, late)
+            _finish_model(conn, model_id, name, counts, late, image_dir=image_dir)
         with engine.begin() as conn:
             # planner statistics for the key columns (geometry statistics are slow to gather)
             conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")

@@ -182,9 +182,9 @@ def test_failed_import_leaves_nothing(db_engine, monkeypatch) -> None:
     real = importer_mod._write_lines
     calls = {"n": 0}
 
-    def failing(conn, lines, model_id, ordinal0):
+    def failing(conn, lines, model_id, ordinal0, **kw):
         calls["n"] += 1
-        real(conn, lines, model_id, ordinal0)
+        real(conn, lines, model_id, ordinal0, **kw)
         if calls["n"] == 2:
             raise RuntimeError("disk full (simulated)")
 
@@ -284,3 +284,62 @@ def test_duplicate_building_ids_refused_by_name(db_engine, tmp_path) -> None:
     with pytest.raises(InputDataError, match=r"twice\.gml.*uq_building_model_gml_id"):
         import_citygml(db_engine, twice, name="twice")
     assert _scalar(db_engine, "SELECT count(*) FROM city_model WHERE name = 'twice'") == 0
+
+
+def test_texture_images_next_to_the_file_are_imported(db_engine, tmp_path) -> None:
+    """The Moabit sample with its (here: generated) texture files: images stored once per
+    appearance and URI, exported byte for byte; a URI escaping the folder is never read."""
+    import re
+
+    import cv2
+
+    src = (DATA / "berlin-moabit-textured-citygml2-lod2.gml").read_text(encoding="utf-8")
+    uris = sorted(set(re.findall(r"<app:imageURI>([^<]*)</app:imageURI>", src)))
+    assert len(uris) == 5
+    folder = tmp_path / "in"
+    rng = np.random.default_rng(5)
+    for k, uri in enumerate(uris):
+        (folder / uri).parent.mkdir(parents=True, exist_ok=True)
+        img = rng.integers(0, 255, (8 + k, 12, 3), dtype=np.uint8)
+        assert cv2.imwrite(str(folder / uri), img)
+    # one URI pointing outside the folder: must be left alone
+    (tmp_path / "secret.jpg").write_bytes((folder / uris[0]).read_bytes())
+    gml = folder / "moabit.gml"
+    gml.write_text(src.replace(uris[0], "../secret.jpg"), encoding="utf-8")
+    s = import_citygml(db_engine, gml, name="moabit-images")
+    with db_engine.connect() as c:
+        rows = c.execute(
+            text(
+                "SELECT ti.uri, ti.mime_type, ti.width, ti.height, ti.bit_depth FROM tex_image ti "
+                "JOIN appearance a ON a.id = ti.appearance_id WHERE a.city_model_id = :m ORDER BY ti.uri"
+            ),
+            {"m": s.model_id},
+        ).all()
+        linked = c.execute(
+            text(
+                "SELECT count(*) FROM surface_data sd JOIN appearance a ON a.id = sd.appearance_id "
+                "WHERE a.city_model_id = :m AND sd.tex_image_id IS NOT NULL"
+            ),
+            {"m": s.model_id},
+        ).scalar_one()
+    # images are owned by their appearance: one row per (appearance, URI) whose file is inside
+    _, back = read_model(gml)
+    apps = [a for t in back for b in t.iter_buildings() for a in b.appearances]
+    pairs = {
+        (k, sd.image_uri) for k, a in enumerate(apps) for sd in a.surface_data if hasattr(sd, "image_uri")
+    }
+    inside = {p for p in pairs if p[1] != "../secret.jpg"}
+    assert len(rows) == len(inside) and {r[0] for r in rows} == set(uris[1:])
+    assert all(r[1] == "image/jpeg" and r[4] == 8 for r in rows)
+    assert {(r[0], r[2], r[3]) for r in rows} == {(u, 12, 8 + k) for k, u in enumerate(uris) if k > 0}
+    n_sd = sum(
+        1
+        for a in apps
+        for sd in a.surface_data
+        if getattr(sd, "image_uri", None) not in (None, "../secret.jpg")
+    )
+    assert linked == n_sd
+    out = export_citygml(db_engine, tmp_path / "out", model="moabit-images")
+    assert out.textures == 4 and validate_citygml2(out.path) == []
+    for uri in uris[1:]:
+        assert (tmp_path / "out" / uri).read_bytes() == (folder / uri).read_bytes()
