@@ -15,6 +15,7 @@ appearance per building; a failure half way rolls the savepoint back and leaves 
 from __future__ import annotations
 
 import hashlib
+import json
 import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -143,8 +144,6 @@ def _f(v: float | None) -> float | None:
 
 
 def _json(v: Any) -> str:
-    import json
-
     return json.dumps(v)
 
 
