@@ -124,6 +124,9 @@ class CoregisterOptions:
     inherit_max_sigma_px: float = 1.0
     # run the sequence level (second pass, inheritance) at all
     sequence: bool = True
+    # frames still at their prior are oriented (passes 1, 2, inheritance) against the whole
+    # scene of the ray caster, the building and its neighbours
+    scene_fallback: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -199,14 +202,38 @@ def refine_building(
     infos = {i: prior_information(prior[i], accuracy, options) for i in frames}
     starts = dict(prior)
     fo = options.fit
+    scene_wf = None
+    has_mesh = getattr(raycaster, "mesh", None) is not None
+    if (options.joint_coarse_scene or options.scene_fallback) and has_mesh:
+        with contextlib.suppress(WireframeError):
+            scene_wf = mesh_wireframe(raycaster.mesh, options.edges)
     coarse = True
     if options.joint_coarse:
-        common = _joint_coarse(camera, wf, raycaster, frames, images, prior, options)
+        coarse_wf = scene_wf if (options.joint_coarse_scene and scene_wf is not None) else wf
+        common = _joint_coarse(camera, coarse_wf, raycaster, frames, images, prior, options)
         if common is not None:
             # the common correction is a sequence-level estimate: pass 1 is centred on it
             starts = {i: apply_coarse(camera, prior[i], common, options.fit) for i in frames}
             fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
             coarse = options.frame_coarse_radius_px > 0
+    t = {i: float(times[i]) if times is not None else float(i) for i in frames}
+    out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
+    rest = [i for i in frames if out[i].status == "prior"]
+    if options.scene_fallback and scene_wf is not None and rest:
+        # the pose error belongs to the frame, not to a building: frames the building alone could
+        # not orient are oriented against the whole scene of the unit (building and neighbours)
+        scene = _orient(camera, scene_wf, raycaster, rest, images, prior, starts, infos, t, fo, coarse,
+                        options)
+        out.update({i: r for i, r in scene.items() if r.status == "refined"})
+    return out
+
+
+def _orient(
+    camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int], images: Mapping[int, np.ndarray],
+    prior: Mapping[int, Pose], starts: Mapping[int, Pose], infos: Mapping[int, np.ndarray],
+    times: Mapping[int, float], fo: FrameFitOptions, coarse: bool, options: CoregisterOptions,
+) -> dict[int, RefinedPose]:
+    """Pass 1, neighbour prediction, pass 2 and inheritance of `frames` against wireframe `wf`."""
     fits = [
         fit_frame(camera, wf, raycaster, images[i], starts[i], infos[i], starts[i], fo, options.edges,
                   options.features, coarse=coarse)
@@ -214,7 +241,7 @@ def refine_building(
     ]
     if not options.sequence:
         return {i: _result(i, f, prior[i]) for i, f in zip(frames, fits, strict=True)}
-    t = np.array([float(times[i]) if times is not None else float(i) for i in frames])
+    t = np.array([times[i] for i in frames])
     deltas = np.array([pose_delta(prior[i], f.pose) for i, f in zip(frames, fits, strict=True)])
     usable = np.array([f.converged for f in fits])
     frame_cov = frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m)
@@ -278,9 +305,6 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
                  coarse_depth_steps=options.joint_coarse_depth_steps)
     eo = replace(options.edges, image_margin_px=-radius)
     fe = replace(options.features, dt_levels=(level,))
-    if options.joint_coarse_scene and getattr(raycaster, "mesh", None) is not None:
-        with contextlib.suppress(WireframeError):
-            wf = mesh_wireframe(raycaster.mesh, options.edges)
     pick = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), options.joint_coarse_max_frames))
                      .round().astype(int))
     poses, vis_list, feats_list = [], [], []
