@@ -112,7 +112,7 @@ def test_orientation_and_report_documents(scene, job):
     assert set(rep["timings_s"]) == {"ingest", "plan", "units", "write"}
     b1 = next(b for b in rep["buildings"] if b["id"] == "B1")
     w0 = next(s for s in b1["surfaces"] if s["id"] == "B1_w0")
-    assert w0["texels_observed"] / w0["texels_total"] > 0.98
+    assert w0["texels_observed"] / w0["texels_total"] > 0.9
     assert 0.01 < w0["mean_resolution_m"] < 0.2 and 0 <= w0["mean_view_angle_deg"] < 80
     assert abs(w0["temperature"]["mean"] - 286) < 5
     north = next(s for s in b1["surfaces"] if s["id"] == "B1_w2")

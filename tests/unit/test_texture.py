@@ -111,7 +111,7 @@ def test_fused_texture_of_an_error_free_drive_matches_the_ground_truth():
     rmse, misreg, coverage = _errors(tex, "B1_w0")
     assert rmse < 0.05
     assert misreg < 0.05
-    assert coverage > 0.99
+    assert coverage > 0.93  # texels within ~2 px of the outline and the holes are left out (blur margin)
     k = [p.id for p in tex.polygons].index("B1_w0")
     # every texel records the frame it came from, and that frame had the best resolution there
     assert set(np.unique(tex.textures[k].frame[tex.grids[k].mask]).tolist()) <= set(unit.frames)

@@ -295,9 +295,9 @@ def texture_frame(
     observed = 0
     for k, idx, uv, dist, cos_view, res in picked:
         if scene is not None:
-            own = scene.polygon_index.get(surfaces[k].grid.polygon_id, -2)
-            bld = int(scene.polygon_building[own]) if own >= 0 else -2
-            keep = consistent_samples(buffer, uv, dist, own, bld, scene.polygon_building, visibility)
+            own = scene.polygon_index.get(surfaces[k].grid.polygon_id, -1)
+            group = int(scene.polygon_group[own]) if own >= 0 else -2
+            keep = consistent_samples(buffer, uv, dist, group, scene.polygon_group, visibility)
             idx, uv, cos_view, res = idx[keep], uv[keep], cos_view[keep], res[keep]
         if len(idx) == 0:
             continue

@@ -64,12 +64,20 @@ class SurfaceErrors:
     misregistration: float
 
 
-def truth_raster(grid: TexelGrid, truth: TruthFn) -> np.ndarray:
-    """Ground-truth texture `(H, W)` float32 of a grid (NaN outside the polygon)."""
+def truth_raster(grid: TexelGrid, truth: TruthFn, supersample: int = 3) -> np.ndarray:
+    """Ground-truth texture `(H, W)` float32 of a grid (NaN outside the polygon): the mean of the
+    field over each texel's square, from `supersample × supersample` point samples (a texel
+    stands for its area; 1 = the value at the texel centre)."""
     out = np.full(grid.shape, np.nan, np.float32)
     r, c = grid.masked_indices()
-    if len(r):
-        out[r, c] = truth(grid.centres(r, c))
+    if len(r) == 0:
+        return out
+    offs = (np.arange(supersample) + 0.5) / supersample
+    acc = np.zeros(len(r))
+    for dy in offs:
+        for dx in offs:
+            acc += truth(grid.points_at(np.stack([c + dx, r + dy], axis=1)))
+    out[r, c] = acc / supersample**2
     return out
 
 

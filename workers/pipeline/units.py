@@ -174,6 +174,7 @@ def plan_units(
     sees = np.zeros((n, len(buildings)), dtype=bool)
     for f, pose in enumerate(poses):
         sees[f] = boxes_in_frustum(camera, pose, lo, hi, vis_opts)
+    boxes = sees.copy()  # conservative: occluder candidates
     if plan.ray_step_px > 0 and sees.any():
         sees &= _ray_sees(buildings, camera, poses, sees, vis_opts.max_distance_m, plan)
     wanted = None if targets is None else set(targets)
@@ -189,11 +190,11 @@ def plan_units(
         fr = np.nonzero(sees[:, k])[0]
         if len(fr) < plan.min_frames or len(fr) == 0:
             continue
-        # occluders: seen by one of these frames and meeting the box spanned by the building
+        # occluders: in the frustum of one of these frames and meeting the box spanned by the building
         # and the projection centres that see it; plus the buildings it touches
         span_lo = np.minimum(lo[k], centers[fr].min(axis=0)) - plan.occluder_margin_m
         span_hi = np.maximum(hi[k], centers[fr].max(axis=0)) + plan.occluder_margin_m
-        meets = np.all((lo <= span_hi) & (hi >= span_lo), axis=1) & sees[fr].any(axis=0)
+        meets = np.all((lo <= span_hi) & (hi >= span_lo), axis=1) & boxes[fr].any(axis=0)
         meets |= np.all((lo <= hi[k] + plan.adjacency_m) & (hi >= lo[k] - plan.adjacency_m), axis=1)
         meets[k] = False
         units.append(
@@ -342,7 +343,7 @@ def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCa
     surfaces = [SurfaceTexels.of(g) for g in grids]
     if raycaster is not None:  # texels covered by a touching building (shared walls) are never seen
         surfaces = [s.without(buried_texels(raycaster, s.points, s.grid.normal)) for s in surfaces]
-    scene = OcclusionScene(raycaster, unit.camera) if raycaster is not None else None
+    scene = OcclusionScene(raycaster, unit.camera, opts.visibility) if raycaster is not None else None
     textures = [SurfaceTexture.empty(g.shape) for g in grids]
     t_grid = time.perf_counter() - t0
     t_load = 0.0

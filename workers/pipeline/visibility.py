@@ -16,11 +16,12 @@ import functools
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from workers.pipeline.camera import Camera
 from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.raycast import RayCaster, SceneMesh
 
 
 @dataclass(frozen=True)
@@ -34,20 +35,28 @@ class VisibilityOptions:
         max_view_angle_deg: largest angle between the surface normal and the ray to the camera.
         occlusion_tolerance_m: rays stop this far short of the texel (its own surface); used by
             `unoccluded` (point-wise test).
-        depth_tolerance_m, depth_tolerance_rel: a pixel read by bilinear sampling belongs to the
-            texel's surface when it sees the texel's polygon or something at the texel's distance
-            within `depth_tolerance_m + depth_tolerance_rel · distance` (for a polygon of the
-            same building; `depth_tolerance_other_m` for any other).
+        depth_tolerance_m, depth_tolerance_rel: a pixel read for a texel belongs to the texel's
+            surface when it sees the texel's plane (its polygon or a coplanar polygon of the same
+            building) at the texel's distance within `depth_tolerance_m + depth_tolerance_rel ·
+            distance`.
+        blur_margin_px: that must also hold for the pixels this far around the 2x2 pixels that
+            bilinear sampling reads: the optics blur a silhouette (sky, roof edge, occluder) into
+            its neighbours.
+        coplanar_deg, coplanar_m: polygons of one building whose normals differ by less than
+            `coplanar_deg` and whose planes are less than `coplanar_m` apart form one plane (a
+            facade split into several polygons).
     """
 
-    margin_px: float = 1.0
+    margin_px: float = 2.0
     min_depth_m: float = 0.5
     max_distance_m: float = 500.0
     max_view_angle_deg: float = 80.0
     occlusion_tolerance_m: float = 0.05
     depth_tolerance_m: float = 0.3
     depth_tolerance_rel: float = 0.02
-    depth_tolerance_other_m: float = 0.1
+    blur_margin_px: int = 1
+    coplanar_deg: float = 1.0
+    coplanar_m: float = 0.05
 
 
 @functools.lru_cache(maxsize=64)
@@ -219,41 +228,74 @@ class HitBuffer:
     polygon: np.ndarray
 
 
-def _top_left(uv: np.ndarray, H: int, W: int) -> np.ndarray:
+def _top_left(uv: np.ndarray, H: int, W: int, margin: int = 0) -> np.ndarray:
     """Flat index `(N,)` of the top-left pixel of the 2x2 bilinear neighbourhood of `uv (N, 2)`
-    (clamped so that the neighbourhood lies inside the image)."""
-    c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp), 0, max(W - 2, 0))
-    r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp), 0, max(H - 2, 0))
+    (clamped so that the neighbourhood, grown by `margin` pixels, lies inside the image)."""
+    c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp), margin, max(W - 2 - margin, margin))
+    r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp), margin, max(H - 2 - margin, margin))
     return r0 * W + c0
+
+
+def _offsets(W: int, margin: int) -> np.ndarray:
+    """Flat offsets of the `(2 + 2·margin)²` pixels around a top-left pixel."""
+    k = np.arange(-margin, 2 + margin)
+    return (k[:, None] * W + k[None, :]).ravel()
 
 
 def consistent_samples(
     buffer: HitBuffer,
     uv: np.ndarray,
     distance: np.ndarray,
-    polygon: int,
-    building: int,
-    polygon_building: np.ndarray,
+    group: int,
+    polygon_group: np.ndarray,
     options: VisibilityOptions,
 ) -> np.ndarray:
-    """`(N,)` bool: all four pixels that bilinear sampling at `uv (N, 2)` reads see the texel's own
-    surface. A pixel qualifies when its first hit is the texel's `polygon`; or another polygon of
-    the same top-level `building` at the texel's `distance (N,)` within `depth_tolerance_m +
-    depth_tolerance_rel · distance` (neighbouring walls at corners, seen at grazing angles); or
-    anything within `depth_tolerance_other_m`. This is the occlusion test (an occluder in front
-    fails it) and keeps samples from mixing the surface with the sky, the background or another
-    building at silhouette edges. `polygon_building (P + 1,)` maps polygon index -> building index,
-    its last entry (index -1) is -1."""
-    W = buffer.width
-    lin = _top_left(uv, buffer.height, W)
+    """`(N,)` bool: the pixels that bilinear sampling at `uv (N, 2)` reads, grown by
+    `blur_margin_px`, all see the texel's own plane: their first hit is a polygon of the texel's
+    plane `group` (see `plane_groups`) at the texel's `distance (N,)` within `depth_tolerance_m +
+    depth_tolerance_rel · distance`. This is the occlusion test (an occluder in front fails it)
+    and keeps samples from mixing the surface with the sky, the background, another building or
+    another face of the same building (a roof above a wall) at silhouette edges.
+    `polygon_group (P + 1,)` maps polygon index -> plane group, its last entry (index -1) is -1."""
+    W, m = buffer.width, options.blur_margin_px
+    lin = _top_left(uv, buffer.height, W, m)
     tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
     ok = np.ones(len(uv), dtype=bool)
-    for off in (0, 1, W, W + 1):
-        poly = buffer.polygon[lin + off]
-        dt = np.abs(buffer.t[lin + off] - distance)
-        same_building = polygon_building[poly] == building
-        ok &= (poly == polygon) | (same_building & (dt <= tol)) | (dt <= options.depth_tolerance_other_m)
+    for off in _offsets(W, m):
+        j = lin + off
+        ok &= (polygon_group[buffer.polygon[j]] == group) & (np.abs(buffer.t[j] - distance) <= tol)
     return ok
+
+
+def plane_groups(mesh: SceneMesh, options: VisibilityOptions) -> np.ndarray:
+    """`(P,)` int: a plane id per polygon of `mesh`; polygons of one building lying in one plane
+    (normals within `coplanar_deg`, planes within `coplanar_m`) share it."""
+    P = mesh.n_polygons
+    group = np.arange(P)
+    if P == 0 or len(mesh.triangles) == 0:
+        return group
+    # a vertex of each polygon (local frame) for the plane offset
+    first = np.full(P, -1, np.int64)
+    first[mesh.triangle_polygon[::-1]] = mesh.triangles[::-1, 0]
+    has = first >= 0
+    offset = np.zeros(P)
+    offset[has] = np.einsum(
+        "ij,ij->i", mesh.polygon_normals[has], mesh.vertices[first[has]].astype(np.float64)
+    )
+    cos_tol = math.cos(math.radians(options.coplanar_deg))
+    by_building: dict[str, list[int]] = {}
+    for i, b in enumerate(mesh.polygon_building):
+        if has[i]:
+            by_building.setdefault(b, []).append(i)
+    for ids in by_building.values():
+        idx = np.array(ids)
+        n = mesh.polygon_normals[idx]
+        same = (n @ n.T > cos_tol) & (
+            np.abs(offset[idx][:, None] - offset[idx][None, :]) < options.coplanar_m
+        )
+        for a in range(len(idx)):  # smallest index of the connected set (planes are few per building)
+            group[idx[a]] = group[idx[np.nonzero(same[a])[0]]].min()
+    return group
 
 
 def buried_texels(
@@ -274,11 +316,13 @@ def buried_texels(
 
 class OcclusionScene:
     """Everything the per-texel occlusion test needs for one unit: an Open3D scene over the
-    scene mesh (building and occluders), the camera's pixel rays, and the scene index and
-    building of each polygon. Rays are built in float32 in the mesh's local frame (no float64
+    scene mesh (building and occluders), the camera's pixel rays, and the scene index and plane
+    group of each polygon. Rays are built in float32 in the mesh's local frame (no float64
     round trip). Not picklable; build one per unit."""
 
-    def __init__(self, raycaster: RayCaster, camera: Camera) -> None:
+    def __init__(
+        self, raycaster: RayCaster, camera: Camera, options: VisibilityOptions = VisibilityOptions()
+    ) -> None:
         import open3d as o3d  # heavy: only processes that cast need it
 
         mesh = raycaster.mesh
@@ -291,21 +335,22 @@ class OcclusionScene:
                 o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
             )
         self.rays = pixel_rays(camera)
+        self.options = options
         self.polygon_index = mesh.polygon_index()
-        self.building_index = {b: k for k, b in enumerate(dict.fromkeys(mesh.polygon_building))}
-        self.polygon_building = np.array(
-            [self.building_index[b] for b in mesh.polygon_building] + [-1], dtype=np.intp
-        )
+        self.polygon_group = np.append(plane_groups(mesh, options), -1).astype(np.intp)
         self._tri_polygon = np.append(mesh.triangle_polygon.astype(np.int32), np.int32(-1))
 
     def buffer(self, pose: Pose, uv: np.ndarray) -> HitBuffer:
         """Cast the pixels that bilinear sampling at `uv (N, 2)` reads, from the projection centre
         of `pose` through the scene."""
         H, W = self.rays.shape[:2]
-        need = np.zeros(H * W, dtype=bool)
-        lin = _top_left(uv, H, W)
+        m = self.options.blur_margin_px
+        need = np.zeros(H * W, dtype=np.uint8)
+        lin = _top_left(uv, H, W, m)
         for off in (0, 1, W, W + 1):
-            need[lin + off] = True
+            need[lin + off] = 1
+        if m > 0:
+            need = cv2.dilate(need.reshape(H, W), np.ones((2 * m + 1, 2 * m + 1), np.uint8)).ravel()
         pix = np.flatnonzero(need)
         t = np.full(H * W, np.inf, np.float32)
         poly = np.full(H * W, -1, np.int32)
