@@ -114,7 +114,9 @@ def test_fused_texture_of_an_error_free_drive_matches_the_ground_truth():
     assert coverage > 0.93  # texels within ~2 px of the outline and the holes are left out (blur margin)
     k = [p.id for p in tex.polygons].index("B1_w0")
     # every texel records the frame it came from, and that frame had the best resolution there
-    assert set(np.unique(tex.textures[k].frame[tex.grids[k].mask]).tolist()) <= set(unit.frames)
+    t = tex.textures[k]
+    assert set(np.unique(t.frame[t.observed]).tolist()) <= set(unit.frames)
+    assert np.all(np.isfinite(t.value[t.observed])) and np.all(np.isnan(t.value[~t.observed]))
 
 
 def test_alignment_pulls_frames_with_a_pose_error_onto_the_fused_texture():
