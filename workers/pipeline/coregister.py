@@ -122,8 +122,11 @@ class CoregisterOptions:
     # inheritance of the neighbours' correction (see the module docstring)
     inherit_min_neighbours: int = 3
     inherit_max_sigma_px: float = 1.0
-    # run the sequence level (second pass, inheritance) at all
+    # run the sequence level (second pass, inheritance) at all ...
     sequence: bool = True
+    # ... and only when at least this share of the frames converged in pass 1 (else the
+    # predictions are weak and the time is better spent on the scene fallback)
+    min_converged_share: float = 0.25
     # frames still at their prior are oriented (passes 1, 2, inheritance) against the whole
     # scene of the ray caster, the building and its neighbours
     scene_fallback: bool = True
@@ -208,6 +211,7 @@ def refine_building(
         with contextlib.suppress(WireframeError):
             scene_wf = mesh_wireframe(raycaster.mesh, options.edges)
     coarse = True
+    common = None
     if options.joint_coarse:
         coarse_wf = scene_wf if (options.joint_coarse_scene and scene_wf is not None) else wf
         common = _joint_coarse(camera, coarse_wf, raycaster, frames, images, prior, options)
@@ -219,7 +223,9 @@ def refine_building(
     t = {i: float(times[i]) if times is not None else float(i) for i in frames}
     out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
     rest = [i for i in frames if out[i].status == "prior"]
-    if options.scene_fallback and scene_wf is not None and rest:
+    # the scene is tried when it showed a common signal (joint coarse) or the building some frames
+    hope = common is not None or len(rest) < len(frames)
+    if options.scene_fallback and scene_wf is not None and rest and hope:
         # the pose error belongs to the frame, not to a building: frames the building alone could
         # not orient are oriented against the whole scene of the unit (building and neighbours)
         scene = _orient(camera, scene_wf, raycaster, rest, images, prior, starts, infos, t, fo, coarse,
@@ -239,11 +245,11 @@ def _orient(
                   options.features, coarse=coarse)
         for i in frames
     ]
-    if not options.sequence:
+    usable = np.array([f.converged for f in fits])
+    if not options.sequence or usable.mean() < options.min_converged_share:
         return {i: _result(i, f, prior[i]) for i, f in zip(frames, fits, strict=True)}
     t = np.array([times[i] for i in frames])
     deltas = np.array([pose_delta(prior[i], f.pose) for i, f in zip(frames, fits, strict=True)])
-    usable = np.array([f.converged for f in fits])
     frame_cov = frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m)
     out: dict[int, RefinedPose] = {}
     for j, i in enumerate(frames):

@@ -319,7 +319,7 @@ def fit_frame(
         inl = w_e > 0
         res = np.concatenate([off[inl], np.linalg.norm(rc[wc > 0], axis=1)]) if len(rc) else off[inl]
         rms_prev = float(np.sqrt(np.mean(res**2))) if len(res) else np.inf
-        small = np.linalg.norm(delta[:3]) < 1e-5 and np.linalg.norm(delta[3:]) < 1e-3
+        small = np.linalg.norm(delta[:3]) < 5e-5 and np.linalg.norm(delta[3:]) < 5e-3
         if small and R_e <= options.edge_radius_min_px + 1e-9:
             break
     fit = _evaluate(

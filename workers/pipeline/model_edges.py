@@ -19,6 +19,7 @@ Coordinates: world = model CRS, metres; pixels with the camera's convention.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -94,12 +95,20 @@ class Wireframe:
     edge_normals: np.ndarray
     corners: np.ndarray
 
-    @property
+    @cached_property
     def edge_outward(self) -> np.ndarray:
         """`(E, 3)` unit mean outward normal of each edge's polygons (offset direction)."""
         s = self.edge_normals.sum(axis=1)
         n = np.linalg.norm(s, axis=1, keepdims=True)
         return np.where(n > 1e-9, s / np.maximum(n, 1e-12), 0.0)
+
+    @cached_property
+    def vertex_outward(self) -> np.ndarray:
+        """`(V, 3)` unit mean outward direction of each vertex's edges (zeros for isolated ones)."""
+        acc = np.zeros_like(self.vertices)
+        np.add.at(acc, self.edges[:, 0], self.edge_outward)
+        np.add.at(acc, self.edges[:, 1], self.edge_outward)
+        return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-12)
 
 
 @dataclass(frozen=True, eq=False)
@@ -356,9 +365,7 @@ def visible_wireframe(
         cor, cp = cor[inside], cp[inside]
         if len(cor):
             # offset the vertex along the mean outward normal of its edges
-            inc = [np.nonzero(np.any(Ed == v, axis=1))[0] for v in cor]
-            off = np.array([wireframe.edge_outward[i].sum(axis=0) for i in inc])
-            off /= np.maximum(np.linalg.norm(off, axis=1, keepdims=True), 1e-12)
+            off = wireframe.vertex_outward[cor]
             vis_c = raycaster.visible(
                 cp + options.visibility_offset_m * off, C, options.visibility_tolerance_m
             )
