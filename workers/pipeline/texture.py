@@ -29,7 +29,6 @@ from workers.pipeline.visibility import (
     OcclusionScene,
     VisibilityOptions,
     boxes_in_frustum,
-    consistent_samples,
     facing,
     project_texels,
 )
@@ -291,13 +290,15 @@ def texture_frame(
     if not picked:
         return 0
     if scene is not None:
-        buffer = scene.buffer(pose, np.concatenate([p[2] for p in picked]))
-    observed = 0
-    for k, idx, uv, dist, cos_view, res in picked:
-        if scene is not None:
+        groups = []
+        for k, *_ in picked:
             own = scene.polygon_index.get(surfaces[k].grid.polygon_id, -1)
-            group = int(scene.polygon_group[own]) if own >= 0 else -2
-            keep = consistent_samples(buffer, uv, dist, group, scene.polygon_group, visibility)
+            groups.append(int(scene.polygon_group[own]) if own >= 0 else -2)
+        keeps = scene.visible(pose, [(p[2], p[3], g) for p, g in zip(picked, groups, strict=True)])
+    observed = 0
+    for j, (k, idx, uv, _dist, cos_view, res) in enumerate(picked):
+        if scene is not None:
+            keep = keeps[j]
             idx, uv, cos_view, res = idx[keep], uv[keep], cos_view[keep], res[keep]
         if len(idx) == 0:
             continue

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -42,6 +43,9 @@ class VisibilityOptions:
         blur_margin_px: that must also hold for the pixels this far around the 2x2 pixels that
             bilinear sampling reads: the optics blur a silhouette (sky, roof edge, occluder) into
             its neighbours.
+        buffer_step_px: the occlusion test casts every `buffer_step_px`-th pixel in both
+            directions (2: a quarter of the rays); a texel's test then reads the 2x2 cast pixels
+            around it (spanning its bilinear pixels and the blur margin up to the step).
         coplanar_deg, coplanar_m: polygons of one building whose normals differ by less than
             `coplanar_deg` and whose planes are less than `coplanar_m` apart form one plane (a
             facade split into several polygons).
@@ -55,6 +59,7 @@ class VisibilityOptions:
     depth_tolerance_m: float = 0.3
     depth_tolerance_rel: float = 0.02
     blur_margin_px: int = 1
+    buffer_step_px: int = 2
     coplanar_deg: float = 1.0
     coplanar_m: float = 0.05
 
@@ -216,7 +221,8 @@ class HitBuffer:
     stored flat (pixel `(v, u)` at `v · width + u`).
 
     Attributes:
-        width, height: image size.
+        width, height: size of the cast grid (the image's divided by `step`, rounded up).
+        step: pixel step of the cast grid (grid element `(i, j)` is pixel `(i·step, j·step)`).
         t: `(H·W,)` float32 distance from the projection centre to the first hit (inf: nothing,
             or a pixel that was not cast).
         polygon: `(H·W,)` int32 index into the scene's `polygon_ids` (-1: nothing / not cast).
@@ -224,6 +230,7 @@ class HitBuffer:
 
     width: int
     height: int
+    step: int
     t: np.ndarray
     polygon: np.ndarray
 
@@ -249,19 +256,18 @@ def consistent_samples(
     group: int,
     polygon_group: np.ndarray,
     options: VisibilityOptions,
+    margin: int,
 ) -> np.ndarray:
-    """`(N,)` bool: the pixels that bilinear sampling at `uv (N, 2)` reads, grown by
-    `blur_margin_px`, all see the texel's own plane: their first hit is a polygon of the texel's
-    plane `group` (see `plane_groups`) at the texel's `distance (N,)` within `depth_tolerance_m +
-    depth_tolerance_rel · distance`. This is the occlusion test (an occluder in front fails it)
-    and keeps samples from mixing the surface with the sky, the background, another building or
-    another face of the same building (a roof above a wall) at silhouette edges.
-    `polygon_group (P + 1,)` maps polygon index -> plane group, its last entry (index -1) is -1."""
-    W, m = buffer.width, options.blur_margin_px
-    lin = _top_left(uv, buffer.height, W, m)
+    """`(N,)` bool: the cast-grid elements around `uv (N, 2)` — the 2x2 around the sample grown by
+    `margin` elements — all see the texel's own plane: their first hit is a polygon of the
+    texel's plane `group` (see `plane_groups`) at the texel's `distance (N,)` within
+    `depth_tolerance_m + depth_tolerance_rel · distance`. `polygon_group (P + 1,)` maps polygon
+    index -> plane group, its last entry (index -1) is -1."""
+    W = buffer.width
+    lin = _top_left(uv / buffer.step, buffer.height, W, margin)
     tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
     ok = np.ones(len(uv), dtype=bool)
-    for off in _offsets(W, m):
+    for off in _offsets(W, margin):
         j = lin + off
         ok &= (polygon_group[buffer.polygon[j]] == group) & (np.abs(buffer.t[j] - distance) <= tol)
     return ok
@@ -334,32 +340,79 @@ class OcclusionScene:
                 o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
                 o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
             )
-        self.rays = pixel_rays(camera)
+        self.step = max(1, options.buffer_step_px)
+        full = pixel_rays(camera)
+        self._rays = {1: full, self.step: np.ascontiguousarray(full[:: self.step, :: self.step])}
         self.options = options
         self.polygon_index = mesh.polygon_index()
         self.polygon_group = np.append(plane_groups(mesh, options), -1).astype(np.intp)
         self._tri_polygon = np.append(mesh.triangle_polygon.astype(np.int32), np.int32(-1))
 
-    def buffer(self, pose: Pose, uv: np.ndarray) -> HitBuffer:
-        """Cast the pixels that bilinear sampling at `uv (N, 2)` reads, from the projection centre
-        of `pose` through the scene."""
-        H, W = self.rays.shape[:2]
-        m = self.options.blur_margin_px
+    def buffer(self, pose: Pose, uv: np.ndarray, step: int = 1, margin: int = 0) -> HitBuffer:
+        """Cast the grid of every `step`-th pixel around `uv (N, 2)` (the 2x2 grid elements around
+        each sample grown by `margin`) from the projection centre of `pose` through the scene."""
+        grid = self._rays[step]
+        H, W = grid.shape[:2]
         need = np.zeros(H * W, dtype=np.uint8)
-        lin = _top_left(uv, H, W, m)
+        lin = _top_left(uv / step, H, W, margin)
         for off in (0, 1, W, W + 1):
             need[lin + off] = 1
-        if m > 0:
-            need = cv2.dilate(need.reshape(H, W), np.ones((2 * m + 1, 2 * m + 1), np.uint8)).ravel()
+        if margin > 0:
+            k = 2 * margin + 1
+            need = cv2.dilate(need.reshape(H, W), np.ones((k, k), np.uint8)).ravel()
         pix = np.flatnonzero(need)
         t = np.full(H * W, np.inf, np.float32)
         poly = np.full(H * W, -1, np.int32)
         if len(self.mesh.triangles) and len(pix):
             rays = np.empty((len(pix), 6), np.float32)
             rays[:, :3] = (pose.center - self.mesh.origin).astype(np.float32)
-            rays[:, 3:] = self.rays.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
+            rays[:, 3:] = grid.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
             ans = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
             t[pix] = ans["t_hit"].numpy()
             prim = ans["primitive_ids"].numpy().astype(np.int64)
             poly[pix] = self._tri_polygon[np.minimum(prim, len(self._tri_polygon) - 1)]
-        return HitBuffer(width=W, height=H, t=t, polygon=poly)
+        return HitBuffer(width=W, height=H, step=step, t=t, polygon=poly)
+
+    def visible(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]]) -> list[np.ndarray]:
+        """Occlusion and silhouette test of a frame's texel samples, per surface.
+
+        Args:
+            samples: per surface `(uv (N, 2), distance (N,), plane group)`.
+
+        Returns per surface `(N,)` bool: the pixels bilinear sampling reads and `blur_margin_px`
+        around them see the texel's own plane. With `buffer_step_px > 1` a coarse grid decides
+        first: samples whose coarse neighbourhood (2x2 grown by one element) is all own plane
+        pass, those whose 2x2 is not fail, and only those in between (near a silhouette) are
+        tested at full resolution.
+        """
+        o = self.options
+        if not samples:
+            return []
+        all_uv = np.concatenate([uv for uv, _, _ in samples])
+        if self.step == 1:
+            buf = self.buffer(pose, all_uv, 1, o.blur_margin_px)
+            return [
+                consistent_samples(buf, uv, d, g, self.polygon_group, o, o.blur_margin_px)
+                for uv, d, g in samples
+            ]
+        coarse = self.buffer(pose, all_uv, self.step, 1)
+        out, near = [], []
+        for uv, d, g in samples:
+            core = consistent_samples(coarse, uv, d, g, self.polygon_group, o, 0)
+            ring = core.copy()
+            ring[core] = consistent_samples(coarse, uv[core], d[core], g, self.polygon_group, o, 1)
+            out.append(ring)
+            near.append(np.nonzero(core & ~ring)[0])
+        if sum(len(n) for n in near):
+            fine = self.buffer(
+                pose,
+                np.concatenate([uv[n] for (uv, _, _), n in zip(samples, near, strict=True)]),
+                1,
+                o.blur_margin_px,
+            )
+            for k, ((uv, d, g), n) in enumerate(zip(samples, near, strict=True)):
+                if len(n):
+                    out[k][n] = consistent_samples(
+                        fine, uv[n], d[n], g, self.polygon_group, o, o.blur_margin_px
+                    )
+        return out
