@@ -7,26 +7,38 @@ Out: `{frame: RefinedPose}` with status `"refined"` or `"prior"`.
 
 Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
 
-1. per frame: model wireframe with hidden edges removed (`model_edges`), Förstner points, LSD
-   segments and their intersections, gradients and an edge distance pyramid (`features`);
-   coarse correspondence-free search on edge distances, then iterative robust least squares of
-   the six exterior-orientation parameters with the prior as a weighted observation, search
-   radii shrinking (`coregister_frame`); accepted only when well determined;
-2. sequence level (`coregister_sequence`): corrections `δ = (ω_cam, dC_world)` of consecutive
-   frames are strongly correlated (constant boresight error, slow GNSS drift). First a **joint
-   coarse search** sums the edge-distance score maps of all frames and applies the common
-   correction to every prior; each frame then gets a small coarse search of its own and the
-   robust adjustment (pass 1). Frames that converged (found the building, whether or not alone
-   they determine the pose) give each frame a **prediction**: the information-weighted,
-   time-weighted mean of its neighbours' corrections (outliers gated). A frame accepted in pass 1
-   and consistent with its prediction keeps its fit; every other frame is fitted again (pass 2)
-   with the prediction as its prior (covariance: the mean's plus the per-frame noise
-   `frame_sigma_*`), which makes frames that see only one or two edges well determined.
+1. per frame (`coregister_frame`): the building's wireframe with hidden edges removed by ray
+   casting through the whole scene (`model_edges`); Förstner points, LSD segments and their
+   intersections, gradients and an edge-distance pyramid (`features`); iterative robust least
+   squares (Tukey) of the six exterior-orientation parameters from edge-normal distances (1-D
+   gradient search along each projected edge sample) and corner-to-point matches within a
+   shrinking search radius R, the prior pose a weighted observation; accepted only when well
+   determined (edge support, inlier RMS, inliers and edges, predicted reprojection uncertainty
+   of the building ≤ `fit.max_sigma_px`, correction in a plausible range).
+2. **joint coarse search** (`coregister_sequence`, `coregister_coarse`): the correspondence-free
+   edge-distance score maps (image shift × roll × depth) of up to `joint_coarse_max_frames`
+   frames are averaged, using the wireframe of the whole scene of the ray caster (building and
+   neighbours: a row of similar houses is not ambiguous); when the minimum is distinct, the
+   common correction (a rotation plus a translation across the optical axis, split by their
+   a-priori sizes) is applied to every prior and pass 1 is centred on it. Else each frame runs
+   its own coarse search (kept only when distinct, too).
+3. sequence level: corrections `δ = (ω_cam, dC_world)` of consecutive frames are strongly
+   correlated (constant boresight error, slow GNSS drift). Frames that converged (found the
+   building, whether or not alone they determine the pose) give each frame a **prediction**: the
+   information-weighted, time-weighted mean of its neighbours' corrections (outliers gated). A
+   frame accepted in pass 1 and consistent with its prediction keeps its fit; every other frame
+   is fitted again (pass 2) with the prediction as its prior (covariance: the mean's plus the
+   per-frame noise `frame_sigma_*`), which determines frames that see only one or two edges.
    **Inheritance rule**: a frame that still fails takes the predicted pose with status
    `"refined"` only when at least `inherit_min_neighbours` converged neighbours lie within the
    window on both sides in time (interpolation, never extrapolation) and the prediction's own
    uncertainty projected onto the building is ≤ `inherit_max_sigma_px`; otherwise it keeps its
    prior with status `"prior"`. `rms_px` is NaN and `matches` 0 for an inherited pose.
+4. **scene fallback**: the pose error belongs to the frame, not to a building, so frames the
+   building alone cannot orient (occluded, tiny, few edges) go through steps 1 and 3 again with
+   the wireframe of the whole scene of the unit; the result is taken when accepted.
+
+All frames of the building are held in memory during the call (`frame_source.load` once each).
 
 `matches` counts inlier corner matches plus edges with at least half of their visible samples
 matched; `rms_px` is the RMS of inlier residuals (edge-normal distances and corner distances).
