@@ -282,6 +282,7 @@ def texture_frame(
         res = np.maximum(res_s, res_t).astype(np.float32)
         tex = textures[k]
         win = res < tex.resolution[surf.rows[idx], surf.cols[idx]] * np.float32(fusion.improve_factor)
+        win &= res <= visibility.max_texel_ratio * surf.grid.size
         if win.any():
             w = np.nonzero(win)[0]
             picked.append(

@@ -22,6 +22,7 @@ from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
 from workers.pipeline.texalign import AlignOptions, align_partial
 from workers.pipeline.texel import TexelGrid
+from workers.pipeline.texture import local_resolution
 from workers.pipeline.visibility import (
     VisibilityOptions,
     boxes_in_frustum,
@@ -90,8 +91,9 @@ def visible_texels(
     ground_z: float | None = None,
 ) -> np.ndarray:
     """`(H, W)` bool: texels (inside the polygon) that at least one of `poses` sees — inside the
-    frame with the margin, in front, facing within the viewing-angle limit, and unoccluded along
-    the ray to the projection centre (point-wise test); never texels on a shared wall (inside
+    frame with the margin, in front, facing within the viewing-angle limit, at a local resolution
+    within `max_texel_ratio` texel sizes, and unoccluded along the ray to the projection centre
+    (point-wise test); never texels on a shared wall (inside
     another solid) or below `ground_z` (a synthetic scene's ground plane)."""
     rows, cols = grid.masked_indices()
     pts = grid.centres(rows, cols)
@@ -112,6 +114,10 @@ def visible_texels(
         todo = ~seen
         proj = project_texels(camera, pose, pts[todo], grid.normal, options)
         idx = np.nonzero(todo)[0][proj.ok]
+        if len(idx) == 0:
+            continue
+        res_s, res_t = local_resolution(camera, pose, pts[idx], grid.s_axis, grid.t_axis)
+        idx = idx[np.maximum(res_s, res_t) <= options.max_texel_ratio * grid.size]
         if len(idx) == 0:
             continue
         if raycaster is not None:

@@ -34,6 +34,9 @@ class VisibilityOptions:
         min_depth_m: texels closer to the camera than this (along the optical axis) are not used.
         max_distance_m: texels farther than this from the projection centre are not used.
         max_view_angle_deg: largest angle between the surface normal and the ray to the camera.
+        max_texel_ratio: an observation whose local resolution (metres on the surface per pixel)
+            exceeds this many texel sizes is not used: it resolves nothing at the texel scale
+            (inf: no limit).
         occlusion_tolerance_m: rays stop this far short of the texel (its own surface); used by
             `unoccluded` (point-wise test).
         depth_tolerance_m, depth_tolerance_rel: a pixel read for a texel belongs to the texel's
@@ -54,7 +57,8 @@ class VisibilityOptions:
     margin_px: float = 2.0
     min_depth_m: float = 0.5
     max_distance_m: float = 500.0
-    max_view_angle_deg: float = 80.0
+    max_view_angle_deg: float = 75.0
+    max_texel_ratio: float = 3.0
     occlusion_tolerance_m: float = 0.05
     depth_tolerance_m: float = 0.3
     depth_tolerance_rel: float = 0.02
