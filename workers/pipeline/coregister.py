@@ -136,9 +136,9 @@ class CoregisterOptions:
     inherit_max_sigma_px: float = 1.0
     # run the sequence level (second pass, inheritance) at all ...
     sequence: bool = True
-    # ... and only when at least this share of the frames converged in pass 1 (else the
-    # predictions are weak and the time is better spent on the scene fallback)
-    min_converged_share: float = 0.25
+    # ... and only when at least this many frames converged in pass 1 (else there is nothing
+    # to predict from)
+    min_converged_frames: int = 2
     # frames still at their prior are oriented (passes 1, 2, inheritance) against the whole
     # scene of the ray caster, the building and its neighbours
     scene_fallback: bool = True
@@ -258,7 +258,7 @@ def _orient(
         for i in frames
     ]
     usable = np.array([f.converged for f in fits])
-    if not options.sequence or usable.mean() < options.min_converged_share:
+    if not options.sequence or usable.sum() < options.min_converged_frames:
         return {i: _result(i, f, prior[i]) for i, f in zip(frames, fits, strict=True)}
     t = np.array([times[i] for i in frames])
     deltas = np.array([pose_delta(prior[i], f.pose) for i, f in zip(frames, fits, strict=True)])
