@@ -62,6 +62,15 @@ def write_tile(out_dir: Path, tile: TextureTile) -> Path:
     return path
 
 
+def read_tile(out_dir: Path, name: str) -> TextureTile:
+    """Read back a 16-bit tile written by `write_tile`."""
+    path = out_dir / name
+    dn = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if dn is None or dn.dtype != np.uint16:
+        raise ResultsWriteError(f"{path}: not a 16-bit PNG")
+    return TextureTile(name=name, dn=dn)
+
+
 def display_name(name: str) -> str:
     """`textures/X_0.png` -> `textures/X_0-display.png`."""
     p = Path(name)

@@ -27,6 +27,7 @@ from services.results_files import (
     REPORT_FORMAT,
     building_report,
     orientation_document,
+    read_tile,
     write_display_tile,
     write_json,
     write_textured_gml,
@@ -34,7 +35,7 @@ from services.results_files import (
 )
 from workers.pipeline.citymodel import Building
 from workers.pipeline.georef import prior_poses
-from workers.pipeline.results import BuildingResult
+from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.texel import TexelOptions
 from workers.pipeline.units import BuildingUnit, PlanOptions, UnitOptions, plan_units, run_building_unit
 
@@ -85,13 +86,14 @@ class RunOptions:
 
 @dataclass
 class RunSummary:
-    """What a job did: where the results are, per-building results (tiles dropped after writing),
-    per-stage wall times."""
+    """What a job did: where the results are, per-building results (tile pixels dropped after
+    writing), units that failed, per-stage wall times."""
 
     out_dir: Path
     n_frames: int
     n_buildings_model: int
     results: list[BuildingResult]
+    failures: list[UnitFailure]
     units_frames: dict[str, int]
     timings_s: dict[str, float]
     refine: bool
@@ -113,17 +115,33 @@ def _mp_context() -> multiprocessing.context.BaseContext:
     return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
 
 
-def run_units(units: Sequence[BuildingUnit], workers: int) -> Iterator[BuildingResult]:
-    """Run building units, in this process (`workers <= 1`) or in a pool; yields results as they
-    finish (pool order is completion order)."""
+@dataclass(frozen=True)
+class UnitFailure:
+    """A building unit that raised: the job goes on without it and reports it."""
+
+    building_id: str
+    error: str
+
+
+def _run_safely(unit: BuildingUnit) -> BuildingResult | UnitFailure:
+    """`run_building_unit`, with any exception turned into a `UnitFailure` (picklable)."""
+    try:
+        return run_building_unit(unit)
+    except Exception as exc:  # one bad building must not sink the job
+        return UnitFailure(unit.building.id, f"{type(exc).__name__}: {exc}")
+
+
+def run_units(units: Sequence[BuildingUnit], workers: int) -> Iterator[BuildingResult | UnitFailure]:
+    """Run building units, in this process (`workers <= 1`) or in a pool; yields results (or
+    failures) as they finish (pool order is completion order)."""
     if workers <= 1 or len(units) <= 1:
         for u in units:
-            yield run_building_unit(u)
+            yield _run_safely(u)
         return
     with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=_mp_context()) as pool:
         # largest units first: better load balance
         order = sorted(range(len(units)), key=lambda k: -len(units[k].frames))
-        futures = [pool.submit(run_building_unit, units[k]) for k in order]
+        futures = [pool.submit(_run_safely, units[k]) for k in order]
         for fut in as_completed(futures):
             yield fut.result()
 
@@ -197,14 +215,18 @@ def run_job(
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     results: list[BuildingResult] = []
+    failures: list[UnitFailure] = []
     report("units", 0, len(units))
     tiles_written = 0.0
     for k, r in enumerate(run_units(units, options.workers)):
-        t1 = time.perf_counter()
-        for tile in r.tiles:
-            write_tile(out, tile)
-        tiles_written += time.perf_counter() - t1
-        results.append(r)
+        if isinstance(r, UnitFailure):
+            failures.append(r)
+        else:
+            t1 = time.perf_counter()
+            for tile in r.tiles:
+                write_tile(out, tile)
+            tiles_written += time.perf_counter() - t1
+            results.append(replace_tiles(r))  # pixels are on disk: keep the job's memory small
         report("units", k + 1, len(units))
     timings["units"] = time.perf_counter() - t0 - tiles_written
 
@@ -214,8 +236,8 @@ def run_job(
     if options.display:
         rng = _value_range(results)
         for r in results:
-            for tile in r.tiles:
-                write_display_tile(out, tile, r.radiometry, rng)
+            for name in (t.name for t in r.tiles):
+                write_display_tile(out, read_tile(out, name), r.radiometry, rng)
     report("write", 1, 4)
     by_id = {r.building_id: r for r in results}
     write_textured_gml(out / "textured.gml", buildings, by_id, header.srs_name, options.display)
@@ -244,17 +266,22 @@ def run_job(
             "buildings_textured": sum(1 for r in results if r.appearance is not None),
             "timings_s": dict(timings),
             "unit_stage_timings_s": stage_units,
-            "buildings": [building_report(by_id[u.building.id], frames_of[u.building.id]) for u in units],
+            "buildings": [
+                building_report(by_id[u.building.id], frames_of[u.building.id])
+                for u in units
+                if u.building.id in by_id
+            ],
+            "failed": [{"id": f.building_id, "error": f.error} for f in failures],
         },
     )
     report("write", 4, 4)
     pkg.close()
-    slim = [replace_tiles(r) for r in results]
     return RunSummary(
         out_dir=out,
         n_frames=len(manifest.frames),
         n_buildings_model=len(buildings),
-        results=slim,
+        results=results,
+        failures=failures,
         units_frames=frames_of,
         timings_s=timings,
         refine=options.refine,
@@ -262,11 +289,11 @@ def run_job(
 
 
 def replace_tiles(r: BuildingResult) -> BuildingResult:
-    """The same result without its tile pixels (already written), to keep summaries small."""
+    """The same result with empty tile pixels (already written): names kept, memory freed."""
     return BuildingResult(
         building_id=r.building_id,
         appearance=r.appearance,
-        tiles=(),
+        tiles=tuple(TextureTile(t.name, np.zeros((0, 0), np.uint16)) for t in r.tiles),
         radiometry=r.radiometry,
         surfaces=r.surfaces,
         poses=r.poses,

@@ -155,3 +155,24 @@ def test_cli_with_two_workers_gives_the_same_textures(scene, job, tmp_path):
         a = cv2.imread(str(out1 / name), cv2.IMREAD_UNCHANGED)
         b = cv2.imread(str(tmp_path / "o2" / name), cv2.IMREAD_UNCHANGED)
         assert np.array_equal(a, b)
+
+
+def test_a_failing_building_is_reported_and_the_others_are_written(scene, tmp_path, monkeypatch):
+    import services.runner as runner
+
+    _, gml, pkg, _, _ = scene
+    real = runner.run_building_unit
+
+    def flaky(unit):
+        if unit.building.id == "B2":
+            raise ValueError("broken geometry")
+        return real(unit)
+
+    monkeypatch.setattr(runner, "run_building_unit", flaky)
+    summary = run_job(gml, pkg, tmp_path / "o", RunOptions(display=False))
+    assert [f.building_id for f in summary.failures] == ["B2"]
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["failed"] == [{"id": "B2", "error": "ValueError: broken geometry"}]
+    assert [b["id"] for b in rep["buildings"]] == ["B1"]
+    _, back = read_model(tmp_path / "o" / "textured.gml")
+    assert [b.id for b in back] == ["B1"]
