@@ -294,7 +294,13 @@ class _BuildingReader:
         lod = _prop_lod(el.tag)
         if lod < 0:
             return False
-        self._geometry(el, d, (cls, sid, lod, False, None, 1), 3)
+        ctx = (cls, sid, lod, False, None, 1)
+        if el.get(XLINK_HREF) is not None:
+            self._geometry(el, d, ctx, 3)
+            return True
+        for g in el:  # the property's geometry (a property element carries no srsName)
+            if isinstance(g.tag, str):
+                self._geometry(g, d, ctx, 3)
         return True
 
     def _boundary(self, prop: etree._Element, d: _Draft) -> None:
