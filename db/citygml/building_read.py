@@ -77,6 +77,7 @@ class _PolyRec:
     surface_id: str | None
     in_solid: bool
     collection_id: str | None
+    solid_reversed: bool = False
 
 
 @dataclass
@@ -85,7 +86,7 @@ class _Scope:
 
     polys: dict[str, _PolyRec] = field(default_factory=dict)
     collections: dict[str, list[_PolyRec]] = field(default_factory=dict)
-    refs: list[tuple[str, bool, int | None]] = field(default_factory=list)
+    refs: list[tuple[str, bool, int, int | None]] = field(default_factory=list)
     ids: set[str] = field(default_factory=set)
 
 
@@ -249,7 +250,7 @@ class _BuildingReader:
         """Walk a geometry subtree; `ctx` = (class, surface id, lod, in_solid, collection id, sign)."""
         href = el.get(XLINK_HREF)
         if href is not None:
-            self.scope.refs.append((ref_id(href), ctx[3], el.sourceline))
+            self.scope.refs.append((ref_id(href), ctx[3], ctx[5], el.sourceline))
             return
         ln = local(el.tag)
         if not ln or ln in _SKIP_GEOM:
@@ -279,7 +280,7 @@ class _BuildingReader:
             if tag in _MEMBER_TAGS:  # fast path: surfaceMember -> href or Polygon
                 href = ch.get(XLINK_HREF)
                 if href is not None:
-                    self.scope.refs.append((ref_id(href), in_solid, ch.sourceline))
+                    self.scope.refs.append((ref_id(href), in_solid, sign, ch.sourceline))
                     continue
                 for g in ch:
                     if g.tag in _POLYGON_TAGS and g.get("srsName") is None and g.get("srsDimension") is None:
@@ -442,6 +443,7 @@ class _BuildingReader:
                     in_solid=rec.in_solid,
                     generated_id=gen_pid,
                     collection_id=rec.collection_id,
+                    solid_reversed=rec.solid_reversed,
                 )
             )
         registry: MutableMapping[str, SurfaceData] = {**self.global_sd, **self.local_sd}
@@ -460,7 +462,7 @@ class _BuildingReader:
 
     def resolve(self) -> None:
         """Apply the `xlink:href` references collected in the building."""
-        for ref, in_solid, line in self.scope.refs:
+        for ref, in_solid, sign, line in self.scope.refs:
             rec = self.scope.polys.get(ref)
             targets = [rec] if rec is not None else self.scope.collections.get(ref)
             if targets is None:
@@ -469,6 +471,7 @@ class _BuildingReader:
             if in_solid:
                 for t in targets:
                     t.in_solid = True
+                    t.solid_reversed = sign < 0
 
 
 def read_building(

@@ -12,7 +12,8 @@ requires: never `app:appearanceMember` inside a building), standard attributes, 
 unclassified polygons in `lodXMultiSurface` (`lod0FootPrint` for LoD 0) or inline in
 `lodXSolid` when they are solid members; classified polygons (LoD 2-4) in
 `bldg:boundedBy/bldg:<Class>Surface/bldg:lodXMultiSurface`, referenced from the solid with
-`xlink:href` when `in_solid`; then `consistsOfBuildingPart`. Ids (building, part, surface,
+`xlink:href` when `in_solid` (through `gml:OrientableSurface orientation="-"` when
+`solid_reversed`); then `consistsOfBuildingPart`. Ids (building, part, surface,
 polygon, ring, MultiSurface) are kept; an input id that is not a valid NCName is written through
 `names.to_ncname` (also in texture targets). Coordinates are written as shortest round-trip
 decimals, so reading the file back gives the same float64 values.
@@ -159,7 +160,12 @@ class _BuildingWriter:
         for p in inline:
             self._polygon(cs, p)
         for p in refs:
-            etree.SubElement(cs, _G + "surfaceMember", {XLINK_HREF: f"#{to_ncname(p.id)}"})
+            if p.solid_reversed:
+                member = etree.SubElement(cs, _G + "surfaceMember")
+                orient = etree.SubElement(member, _G + "OrientableSurface", orientation="-")
+                etree.SubElement(orient, _G + "baseSurface", {XLINK_HREF: f"#{to_ncname(p.id)}"})
+            else:
+                etree.SubElement(cs, _G + "surfaceMember", {XLINK_HREF: f"#{to_ncname(p.id)}"})
 
     # ---- attributes ----------------------------------------------------------------------------
     @staticmethod
@@ -251,10 +257,12 @@ class _BuildingWriter:
                     by_lod_refs.setdefault(p.lod, []).append(p)
             else:
                 prev_key = None
-                if p.in_solid and 1 <= p.lod <= 4:
+                if p.in_solid and 1 <= p.lod <= 4 and not p.solid_reversed:
                     by_lod_inline.setdefault(p.lod, []).append(p)
                 else:
                     by_lod_ms.setdefault(max(0, min(p.lod, 4)), []).append(p)
+                    if p.in_solid and 1 <= p.lod <= 4:  # used reversed: referenced, not inline
+                        by_lod_refs.setdefault(p.lod, []).append(p)
         if 0 in by_lod_ms:
             self._multisurface(etree.SubElement(el, _B + "lod0FootPrint"), by_lod_ms[0], srs)
 

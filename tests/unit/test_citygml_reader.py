@@ -335,3 +335,46 @@ def test_xlink_to_a_composite_surface(tmp_path: Path) -> None:
         ("B", True, "CS1"),
         ("C", False, None),
     ]
+
+
+def test_solid_member_through_reversed_orientable_surface(tmp_path: Path) -> None:
+    """`OrientableSurface orientation="-"` around an xlink: one polygon, rings as defined,
+    marked `solid_reversed`; written back the same way."""
+    from db.citygml import validate_citygml2, write_citygml
+
+    solid = (
+        "<bldg:lod2Solid><gml:Solid><gml:exterior><gml:CompositeSurface>"
+        '<gml:surfaceMember><gml:OrientableSurface orientation="-">'
+        '<gml:baseSurface xlink:href="#P1"/></gml:OrientableSurface></gml:surfaceMember>'
+        '<gml:surfaceMember xlink:href="#P2"/><gml:surfaceMember xlink:href="#U1"/>'
+        '<gml:surfaceMember><gml:OrientableSurface orientation="-">'
+        '<gml:baseSurface xlink:href="#U2"/></gml:OrientableSurface></gml:surfaceMember>'
+        "</gml:CompositeSurface></gml:exterior></gml:Solid></bldg:lod2Solid>"
+    )
+    loose = (
+        "<bldg:lod2MultiSurface><gml:MultiSurface>"
+        f"<gml:surfaceMember>{polygon('U1', square(0, 0, 5))}</gml:surfaceMember>"
+        f"<gml:surfaceMember>{polygon('U2', square(0, 0, 6))}</gml:surfaceMember>"
+        "</gml:MultiSurface></bldg:lod2MultiSurface>"
+    )
+    ring = square(0, 0, 0)
+    body = building(
+        "B1",
+        solid,
+        loose,
+        boundary("WallSurface", "W1", polygon("P1", ring)),
+        boundary("RoofSurface", "R1", polygon("P2", square(0, 0, 3))),
+    )
+    (b,) = read_model(write_doc(tmp_path, body))[1]
+    flags = {p.id: (p.in_solid, p.solid_reversed) for p in b.polygons}
+    assert flags == {"U1": (True, False), "U2": (True, True), "P1": (True, True), "P2": (True, False)}
+    p1 = next(p for p in b.polygons if p.id == "P1")
+    np.testing.assert_array_equal(p1.exterior.coords, np.array(ring.split(), float).reshape(-1, 3))
+    out = tmp_path / "out.gml"
+    write_citygml(out, [b], srs_name="EPSG:25832")
+    assert validate_citygml2(out) == []
+    (again,) = read_model(out)[1]
+    assert {p.id: (p.in_solid, p.solid_reversed) for p in again.polygons} == flags
+    for p in again.polygons:
+        q = next(x for x in b.polygons if x.id == p.id)
+        np.testing.assert_array_equal(p.exterior.coords, q.exterior.coords)

@@ -62,6 +62,9 @@ class Polygon:
         collection_id: `gml:id` of the `gml:MultiSurface` / `gml:CompositeSurface` / `gml:Shell`
             that holds the polygon's definition in the input, if any (kept so that the writer can
             reproduce it: appearances may target it).
+        solid_reversed: True when the building's solid uses the polygon reversed (an
+            `xlink:href` to it through `gml:OrientableSurface orientation="-"`); the rings stay
+            as defined.
     """
 
     id: str
@@ -73,6 +76,7 @@ class Polygon:
     in_solid: bool = False
     generated_id: bool = False
     collection_id: str | None = None
+    solid_reversed: bool = False
 
     @property
     def rings(self) -> tuple[Ring, ...]:
