@@ -245,34 +245,43 @@ def main() -> None:
             <= 30,
         }
         out[platform] = sec
-        if a.texture and platform == "drive":
-            out["texture"] = texture_run(a.frames, a.buildings, a.seed)
+        if a.texture:
+            out.setdefault("texture", {})[platform] = texture_run(platform, a.frames, a.buildings, a.seed)
     if "texture" not in out:
         out["texture"] = "not run (pass --texture; needs `citytherm run` with refinement)"
     out["wall_s"] = round(time.perf_counter() - t_all, 1)
     print(json.dumps(out, indent=1))
 
 
-def texture_run(frames: int, buildings: int, seed: int) -> dict:
-    """`citytherm run` with refinement on a drive around the bundled real model with the default
-    error model; texture accuracy and orientation figures against the truth."""
+def texture_run(platform: str, frames: int, buildings: int, seed: int) -> dict:
+    """`citytherm run` with refinement on a sequence around the bundled real model with the
+    default error model; texture accuracy and orientation figures against the truth, and the same
+    run without refinement for comparison."""
     from db.citygml.reader import read_model
     from services.runner import RunOptions, run_job
     from services.synth_eval import orientation_accuracy, texture_accuracy
     from workers.pipeline.synth import BUNDLED_MODEL, write_synthetic_package
 
     root = Path(tempfile.mkdtemp(prefix="citytherm-bench-orientation-"))
-    opts = SynthOptions(n_frames=frames, seed=seed, buildings=buildings, model_path=str(BUNDLED_MODEL))
+    opts = SynthOptions(platform=platform, n_frames=frames, seed=seed, buildings=buildings,
+                        model_path=str(BUNDLED_MODEL))
     res = synthesize(read_model(BUNDLED_MODEL)[1], opts)
     pkg = write_synthetic_package(res, root / "seq")
-    t0 = time.perf_counter()
-    run_job(BUNDLED_MODEL, pkg, root / "out", RunOptions(refine=True, display=False))
-    wall = time.perf_counter() - t0
-    acc = texture_accuracy(root / "out", res)
-    acc.update(orientation_accuracy(root / "out", res))
-    out = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in acc.items()}
-    out["run_wall_s"] = round(wall, 1)
-    out["results"] = str(root / "out")
+    out: dict = {}
+    for refine in (True, False):
+        dest = root / ("refined" if refine else "prior")
+        t0 = time.perf_counter()
+        run_job(BUNDLED_MODEL, pkg, dest, RunOptions(refine=refine, display=False))
+        wall = time.perf_counter() - t0
+        acc = texture_accuracy(dest, res)
+        acc.update(orientation_accuracy(dest, res))
+        r = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in acc.items()}
+        r["run_wall_s"] = round(wall, 1)
+        out["refine" if refine else "no_refine"] = r
+    ref = out["refine"]
+    out["bars"] = {"rmse_k<=0.45": ref["rmse_k"] <= 0.45,
+                   "misregistration<=0.5": (ref.get("misregistration_median_texel") or 1e9) <= 0.5}
+    out["results"] = str(root)
     return out
 
 

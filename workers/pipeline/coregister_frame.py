@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from workers.pipeline.camera import Camera
 
@@ -126,8 +127,9 @@ class FrameFitOptions:
     # acceptance: largest correction from the start pose (beyond it: a wrong minimum)
     max_correction_m: float = 9.0
     max_correction_deg: float = 8.0
-    # fewer visible edge samples than this: no refinement
+    # fewer visible edge samples than this: no refinement; more than max_samples: thinned evenly
     min_samples: int = 10
+    max_samples: int = 400
     # ROI margin around the projected wireframe, pixels (added to the coarse radius)
     roi_margin_px: float = 24.0
 
@@ -235,9 +237,22 @@ def _match_corners(
     """Nearest image point `(K, 2)` within `radius` of each projected corner `(M, 2)` -> (index, ok)."""
     if len(uv_c) == 0 or len(points) == 0:
         return np.zeros(len(uv_c), int), np.zeros(len(uv_c), bool)
-    d = np.linalg.norm(uv_c[:, None, :] - points[None, :, :], axis=2)
-    j = np.argmin(d, axis=1)
-    return j, d[np.arange(len(uv_c)), j] <= radius
+    d, j = cKDTree(points).query(uv_c, k=1)
+    return np.asarray(j, dtype=int), np.asarray(d) <= radius
+
+
+def _visible(
+    wireframe: Wireframe, camera: Camera, pose: Pose, raycaster: RayCaster, edge_options: EdgeOptions,
+    max_samples: int,
+) -> VisibleWireframe:
+    """`visible_wireframe` thinned to at most `max_samples` edge samples (evenly, per edge order)."""
+    vis = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+    n = len(vis.points)
+    if n <= max_samples:
+        return vis
+    keep = np.unique(np.linspace(0, n - 1, max_samples).round().astype(int))
+    return replace(vis, points=vis.points[keep], edge=vis.edge[keep], direction=vis.direction[keep],
+                   weight=vis.weight[keep])
 
 
 def frame_box(
@@ -274,7 +289,7 @@ def fit_frame(
     """Refine `start` against the frame `image` `(H, W)` float32; `prior` with information
     `prior_info` `(6, 6)` (on `(ω, dC)`, rad⁻², m⁻²) is a weighted observation. See the module
     docstring. Features are computed in a box around the projected wireframe only."""
-    vis = visible_wireframe(wireframe, camera, start, raycaster, edge_options)
+    vis = _visible(wireframe, camera, start, raycaster, edge_options, options.max_samples)
     if len(vis.points) < options.min_samples:
         return FrameFit(pose=start, accepted=False, reason="too few visible model edges")
     margin = (options.coarse_radius_px if coarse else options.edge_radius_start_px) + options.roi_margin_px
@@ -288,7 +303,7 @@ def fit_frame(
     pose = start
     if coarse:
         pose = coarse_search(camera, start, vis, feats, options)
-        vis2 = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+        vis2 = _visible(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
         if len(vis2.points) >= options.min_samples:
             vis = vis2
     box = frame_box(camera, pose, vis, options.edge_radius_start_px + options.point_radius_start_px)
@@ -300,7 +315,7 @@ def fit_frame(
     sig_p2 = options.sigma_point_px**2
     for it in range(options.iterations):
         if it in options.revisibility_at:
-            vis2 = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+            vis2 = _visible(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
             if len(vis2.points) >= options.min_samples:
                 vis = vis2
         R_e = max(options.edge_radius_min_px, min(options.edge_radius_start_px * 0.8**it, 3 * rms_prev + 1))
@@ -383,7 +398,7 @@ def _evaluate(
     sig_p2: float,
 ) -> FrameFit:
     """Residuals, support, covariance and the acceptance tests at the final pose."""
-    vis = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+    vis = _visible(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
     if len(vis.points) < options.min_samples:
         return FrameFit(pose=start, accepted=False, reason="model left the frame")
     R_min = options.edge_radius_min_px

@@ -58,6 +58,8 @@ class FeatureOptions:
     # (absolute px plus a share of the segment length)
     intersection_max_gap: float = 3.0
     intersection_max_gap_rel: float = 0.15
+    # intersections: at most this many (those of the longest segment pairs)
+    intersection_max_count: int = 400
     # robust gradient scale of the ROI: this percentile of the gradient magnitude (the strongest
     # edges, building outlines against the sky, cover a few per cent of the ROI at most)
     gradient_ref_percentile: float = 99.7
@@ -263,7 +265,11 @@ def segment_intersections(segments: np.ndarray, options: FeatureOptions = Featur
     gap_i = (options.intersection_max_gap + options.intersection_max_gap_rel * length[i]) / length[i]
     gap_j = (options.intersection_max_gap + options.intersection_max_gap_rel * length[j]) / length[j]
     ok = (s >= -gap_i) & (s <= 1 + gap_i) & (r >= -gap_j) & (r <= 1 + gap_j)
-    return p[i[ok]] + s[ok, None] * d[i[ok]]
+    i, j, s = i[ok], j[ok], s[ok]
+    if len(i) > options.intersection_max_count:  # keep the pairs of the longest segments
+        order = np.argsort(-np.minimum(length[i], length[j]), kind="stable")[: options.intersection_max_count]
+        i, s = i[order], s[order]
+    return p[i] + s[:, None] * d[i]
 
 
 def _distance_pyramid(edges: np.ndarray, options: FeatureOptions) -> dict[int, np.ndarray]:
