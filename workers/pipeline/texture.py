@@ -30,6 +30,7 @@ from workers.pipeline.visibility import (
     VisibilityOptions,
     boxes_in_frustum,
     facing,
+    frustum_extent,
     project_texels,
 )
 
@@ -222,9 +223,33 @@ class SurfaceTexels:
         keep = ~drop
         return SurfaceTexels._build(self.grid, self.rows[keep], self.cols[keep], self.points[keep], block)
 
-    def in_view(self, camera: Camera, pose: Pose, options: VisibilityOptions) -> np.ndarray:
-        """Indices `(M,)` of the texels in the blocks that may appear in the frame at `pose`."""
+    def in_view(
+        self,
+        camera: Camera,
+        pose: Pose,
+        options: VisibilityOptions,
+        fused_resolution: np.ndarray | None = None,
+        improve_factor: float = 1.0,
+    ) -> np.ndarray:
+        """Indices `(M,)` of the texels in the blocks that may appear in the frame at `pose` and
+        may get a usable, better observation from it.
+
+        A block is skipped when even the best local resolution the frame could give it (its
+        nearest point seen head-on at the image corner's magnification) is coarser than
+        `max_texel_ratio` texel sizes, or than what every texel of the block already has
+        (`fused_resolution (H, W)`, inf where unobserved, times `improve_factor`).
+        """
         ok = boxes_in_frustum(camera, pose, self.block_lo, self.block_hi, options)
+        if ok.any():
+            a_lo, a_hi, b_lo, b_hi = frustum_extent(camera, 0.0)
+            gain = max(camera.fx, camera.fy) * (1.0 + max(a_lo**2, a_hi**2) + max(b_lo**2, b_hi**2))
+            nearest = np.linalg.norm(np.clip(pose.center, self.block_lo, self.block_hi) - pose.center, axis=1)
+            best = nearest / gain  # lower bound of the local resolution, m/px
+            limit = np.full(len(best), options.max_texel_ratio * self.grid.size)
+            if fused_resolution is not None:
+                worst = np.maximum.reduceat(fused_resolution[self.rows, self.cols], self.block_start[:-1])
+                limit = np.minimum(limit, worst * improve_factor)
+            ok &= best < limit
         if ok.all():
             return np.arange(len(self.points))
         b = np.nonzero(ok)[0]
@@ -269,7 +294,7 @@ def texture_frame(
         surf = surfaces[k]
         if len(surf.points) == 0 or not facing(surf.grid.normal, surf.grid.corner, pose.center):
             continue
-        sub = surf.in_view(camera, pose, visibility)
+        sub = surf.in_view(camera, pose, visibility, textures[k].resolution, fusion.improve_factor)
         if len(sub) == 0:
             continue
         proj = project_texels(camera, pose, surf.points[sub], surf.grid.normal, visibility)

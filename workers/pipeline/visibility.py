@@ -69,7 +69,7 @@ class VisibilityOptions:
 
 
 @functools.lru_cache(maxsize=64)
-def _frustum_extent(camera: Camera, margin_px: float) -> tuple[float, float, float, float]:
+def frustum_extent(camera: Camera, margin_px: float) -> tuple[float, float, float, float]:
     """Normalised image-plane extent `(a_lo, a_hi, b_lo, b_hi)` of a camera's frame grown by
     `margin_px`, from the rays of the four corners and edge midpoints (distortion included)."""
     w, h = camera.width - 1.0, camera.height - 1.0
@@ -97,7 +97,7 @@ def frustum_planes(camera: Camera, pose: Pose, margin_px: float = 0.0) -> np.nda
     `n · X + d >= 0` inside. Built through the projection centre and the widest normalised extent
     of the image border (distortion included), so that it slightly over-covers the frame.
     """
-    a_lo, a_hi, b_lo, b_hi = _frustum_extent(camera, float(margin_px))
+    a_lo, a_hi, b_lo, b_hi = frustum_extent(camera, float(margin_px))
     # planes in camera frame through the origin: a >= a_lo  <=>  x - a_lo z >= 0, etc.
     n_c = np.array([[1.0, 0.0, -a_lo], [-1.0, 0.0, a_hi], [0.0, 1.0, -b_lo], [0.0, -1.0, b_hi]])
     n_w = n_c @ pose.R_world_from_cam.T
@@ -183,7 +183,7 @@ def project_texels(
     distance = np.sqrt(np.einsum("ij,ij->i", xc, xc))
     n_c = pose.R_world_from_cam.T @ np.asarray(normal, dtype=np.float64)
     cos_view = -(xc @ n_c) / np.maximum(distance, 1e-12)
-    a_lo, a_hi, b_lo, b_hi = _frustum_extent(camera, 1.0)
+    a_lo, a_hi, b_lo, b_hi = frustum_extent(camera, 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         a = xc[:, 0] / depth
         b = xc[:, 1] / depth
