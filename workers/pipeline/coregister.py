@@ -106,8 +106,10 @@ class CoregisterOptions:
     joint_coarse: bool = True
     # ... at most this many frames (evenly spread) take part ...
     joint_coarse_max_frames: int = 16
-    # ... on this pyramid level, over image shifts up to this radius (pixels; model samples up to
-    # this far outside the frame take part) and these depth offsets (shares of the median depth)
+    # ... on this pyramid level (full-resolution pixels per level pixel; the frames are first
+    # downsampled by `joint_coarse_downsample`), over image shifts up to this radius (pixels;
+    # model samples up to this far outside the frame take part) and these depth offsets (shares
+    # of the median depth)
     joint_coarse_level: int = 8
     joint_coarse_downsample: int = 2
     joint_coarse_radius_px: float = 320.0
