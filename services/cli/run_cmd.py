@@ -40,7 +40,7 @@ def summary_table(summary: RunSummary, limit: int = 30) -> Table:
         tot = sum(s.texels_total for s in r.surfaces)
         res = [s.mean_resolution_m for s in r.surfaces if s.texels_observed]
         table.add_row(
-            r.building_id,
+            r.building_id if len(r.building_id) <= 24 else "…" + r.building_id[-23:],
             str(summary.units_frames.get(r.building_id, 0)),
             f"{sum(1 for s in r.surfaces if s.texels_observed)}/{len(r.surfaces)}",
             f"{obs:,}",
