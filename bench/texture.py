@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -74,6 +75,7 @@ def main() -> None:
         dest = root / f"run_w{w}"
         shutil.rmtree(dest, ignore_errors=True)
         t1 = time.perf_counter()
+        c1 = os.times()
         summary = run_job(
             BUNDLED_MODEL,
             pkg,
@@ -81,12 +83,17 @@ def main() -> None:
             RunOptions(resolution_px_per_m=a.resolution, workers=w, refine=False, display=False),
         )
         wall = time.perf_counter() - t1
+        c2 = os.times()
+        cpu = (c2.user - c1.user) + (c2.system - c1.system) + (c2.children_user - c1.children_user)
+        cpu += c2.children_system - c1.children_system
         rep = json.loads((dest / "report.json").read_text())
         st = rep["unit_stage_timings_s"]
         pairs = sum(summary.units_frames.values())
         tex_s = st.get("decode", 0.0) + st.get("texture", 0.0)
         out["runs"][f"workers_{w}"] = {
             "wall_s": round(wall, 2),
+            "cpu_s": round(cpu, 2),
+            "load_average_1min": round(os.getloadavg()[0], 2),
             "stage_s": {k: round(v, 2) for k, v in summary.timings_s.items()},
             "buildings_processed": len(summary.results),
             "building_frame_pairs": pairs,
