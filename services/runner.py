@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from db.citygml.reader import read_model
-from db.sequence_package import open_package
+from db.sequence_package import SequencePackage, open_package
 from services.results_files import (
     REPORT_FORMAT,
     building_report,
@@ -36,6 +36,7 @@ from services.results_files import (
 from workers.pipeline.citymodel import Building
 from workers.pipeline.georef import prior_poses
 from workers.pipeline.results import BuildingResult, TextureTile
+from workers.pipeline.sequence import Radiometry
 from workers.pipeline.texel import TexelOptions
 from workers.pipeline.units import BuildingUnit, PlanOptions, UnitOptions, plan_units, run_building_unit
 
@@ -146,6 +147,15 @@ def run_units(units: Sequence[BuildingUnit], workers: int) -> Iterator[BuildingR
             yield fut.result()
 
 
+def output_radiometry(pkg: SequencePackage) -> Radiometry:
+    """The tiles' radiometry: the sequence's, except for 8-bit frames, whose values are kept as
+    they are (scale 1, offset 0; `results-format.md`)."""
+    rad = pkg.manifest.radiometry
+    if pkg.manifest.frames and pkg.frames.raw(0).dtype == np.uint8:
+        return Radiometry(unit=rad.unit, scale=1.0, offset=0.0)
+    return rad
+
+
 def _value_range(results: Sequence[BuildingResult]) -> tuple[float, float]:
     """Display range: 1st and 99th percentile of observed surface medians and extremes."""
     lo = [s.temperature["p05"] for r in results for s in r.surfaces if s.temperature]
@@ -200,7 +210,7 @@ def run_job(
         manifest.camera,
         priors,
         pkg.frames,
-        manifest.radiometry,
+        output_radiometry(pkg),
         times=[f.time for f in manifest.frames],
         frame_indices=[f.index for f in manifest.frames],
         accuracy=manifest.accuracy,

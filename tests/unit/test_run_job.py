@@ -176,3 +176,21 @@ def test_a_failing_building_is_reported_and_the_others_are_written(scene, tmp_pa
     assert [b["id"] for b in rep["buildings"]] == ["B1"]
     _, back = read_model(tmp_path / "o" / "textured.gml")
     assert [b.id for b in back] == ["B1"]
+
+
+def test_8bit_frames_keep_their_values_in_the_tiles(tmp_path):
+    from db.sequence_package import open_package, write_package
+    from services.runner import output_radiometry
+
+    src = tmp_path / "src"
+    src.mkdir()
+    b = [box_building("B8", 0, 0, 6, 4, 4)]
+    poses = [look_at([3, -10, 1.6], [3, 0, 2.0])]
+    gml, pkg = write_scene(src, b, CAM, poses)
+    m = open_package(pkg).manifest
+    frames8 = [np.full((CAM.height, CAM.width), 200, np.uint8)]
+    pkg8 = write_package(tmp_path / "seq8", m, frames8)
+    assert output_radiometry(open_package(pkg8)) == Radiometry(m.radiometry.unit, 1.0, 0.0)
+    run_job(gml, pkg8, tmp_path / "o8", RunOptions(display=False))
+    dn = cv2.imread(str(tmp_path / "o8" / "textures" / "B8_0.png"), cv2.IMREAD_UNCHANGED)
+    assert set(np.unique(dn).tolist()) == {0, 200}
