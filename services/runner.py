@@ -33,8 +33,9 @@ from services.results_files import (
     write_textured_gml,
     write_tile,
 )
-from workers.pipeline.citymodel import Building
+from workers.pipeline.citymodel import Building, ModelHeader
 from workers.pipeline.georef import prior_poses
+from workers.pipeline.pose import Pose
 from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.sequence import Radiometry
 from workers.pipeline.texel import TexelOptions
@@ -165,6 +166,79 @@ def _value_range(results: Sequence[BuildingResult]) -> tuple[float, float]:
     return float(np.percentile(lo, 5)), float(np.percentile(hi, 95))
 
 
+@dataclass
+class JobPlan:
+    """An ingested and planned job: what the units stage needs (the service dispatches `units`
+    as tasks; `citytherm run` runs them in a pool). Owns the opened package: `package.close()`."""
+
+    city_gml: Path
+    package_path: Path
+    header: ModelHeader
+    buildings: list[Building]
+    package: SequencePackage
+    priors: list[Pose]
+    units: list[BuildingUnit]
+
+
+def plan_job(
+    city_gml: str | Path,
+    package: str | Path,
+    options: RunOptions = RunOptions(),
+    progress: Progress | None = None,
+    timings: dict[str, float] | None = None,
+) -> JobPlan:
+    """Ingest (read the model and the package, georeference the prior poses) and plan (one
+    building unit per building the sequence sees). Stage wall times go into `timings`."""
+    report: Progress = progress or (lambda stage, done, total: None)
+    timings = timings if timings is not None else {}
+    if options.workers < 1:
+        raise RunError(f"workers must be >= 1, got {options.workers}")
+    if options.refine and not refine_available():
+        raise RunError("refine: the orientation module (workers.pipeline.coregister) is not installed")
+    TexelOptions(resolution_px_per_m=options.resolution_px_per_m)  # validates the resolution
+
+    t0 = time.perf_counter()
+    report("ingest", 0, 3)
+    if not Path(city_gml).is_file():
+        raise RunError(f"{city_gml}: city model not found")
+    header, buildings = read_model(city_gml)
+    ids = {b.id for b in buildings}
+    if options.buildings is not None:
+        missing = [b for b in options.buildings if b not in ids]
+        if missing:
+            raise RunError(f"buildings: not in {city_gml}: {', '.join(missing)}")
+    report("ingest", 1, 3)
+    pkg = open_package(package)
+    try:
+        manifest = pkg.manifest
+        report("ingest", 2, 3)
+        priors = prior_poses(manifest, header.srs_name)
+        report("ingest", 3, 3)
+        timings["ingest"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        report("plan", 0, 1)
+        units = plan_units(
+            buildings,
+            manifest.camera,
+            priors,
+            pkg.frames,
+            output_radiometry(pkg),
+            times=[f.time for f in manifest.frames],
+            frame_indices=[f.index for f in manifest.frames],
+            accuracy=manifest.accuracy,
+            options=options.unit_options(),
+            plan=options.plan,
+            targets=options.buildings,
+        )
+        report("plan", 1, 1)
+        timings["plan"] = time.perf_counter() - t0
+    except BaseException:
+        pkg.close()
+        raise
+    return JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units)
+
+
 def run_job(
     city_gml: str | Path,
     package: str | Path,
@@ -174,52 +248,22 @@ def run_job(
 ) -> RunSummary:
     """Texture the buildings of `city_gml` seen by the sequence `package`; write the results
     folder `out_dir` (created; existing result files are overwritten)."""
-    report: Progress = progress or (lambda stage, done, total: None)
     timings: dict[str, float] = {}
-    if options.workers < 1:
-        raise RunError(f"workers must be >= 1, got {options.workers}")
-    if options.refine and not refine_available():
-        raise RunError("refine: the orientation module (workers.pipeline.coregister) is not installed")
-    TexelOptions(resolution_px_per_m=options.resolution_px_per_m)  # validates the resolution
-    out = Path(out_dir)
+    plan = plan_job(city_gml, package, options, progress, timings)
+    try:
+        return _run_planned(plan, Path(out_dir), options, progress, timings)
+    finally:
+        plan.package.close()
 
-    # -- ingest ------------------------------------------------------------------------------
-    t0 = time.perf_counter()
-    report("ingest", 0, 3)
-    if not Path(city_gml).is_file():
-        raise RunError(f"{city_gml}: city model not found")
-    header, buildings = read_model(city_gml)
-    report("ingest", 1, 3)
-    pkg = open_package(package)
-    manifest = pkg.manifest
-    report("ingest", 2, 3)
-    priors = prior_poses(manifest, header.srs_name)
-    report("ingest", 3, 3)
-    timings["ingest"] = time.perf_counter() - t0
 
-    # -- plan --------------------------------------------------------------------------------
-    t0 = time.perf_counter()
-    report("plan", 0, 1)
-    ids = {b.id for b in buildings}
-    if options.buildings is not None:
-        missing = [b for b in options.buildings if b not in ids]
-        if missing:
-            raise RunError(f"buildings: not in {city_gml}: {', '.join(missing)}")
-    units = plan_units(
-        buildings,
-        manifest.camera,
-        priors,
-        pkg.frames,
-        output_radiometry(pkg),
-        times=[f.time for f in manifest.frames],
-        frame_indices=[f.index for f in manifest.frames],
-        accuracy=manifest.accuracy,
-        options=options.unit_options(),
-        plan=options.plan,
-        targets=options.buildings,
-    )
-    report("plan", 1, 1)
-    timings["plan"] = time.perf_counter() - t0
+def _run_planned(
+    plan: JobPlan, out: Path, options: RunOptions, progress: Progress | None, timings: dict[str, float]
+) -> RunSummary:
+    """Units and write stages of `run_job`."""
+    report: Progress = progress or (lambda stage, done, total: None)
+    units, buildings, header, priors = plan.units, plan.buildings, plan.header, plan.priors
+    manifest = plan.package.manifest
+    city_gml, package = plan.city_gml, plan.package_path
 
     # -- units -------------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -285,7 +329,6 @@ def run_job(
         },
     )
     report("write", 4, 4)
-    pkg.close()
     return RunSummary(
         out_dir=out,
         n_frames=len(manifest.frames),
