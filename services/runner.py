@@ -99,6 +99,7 @@ class RunSummary:
     units_frames: dict[str, int]
     timings_s: dict[str, float]
     refine: bool
+    warning: str | None = None
 
     @property
     def texels_observed(self) -> int:
@@ -157,6 +158,29 @@ def output_radiometry(pkg: SequencePackage) -> Radiometry:
     return rad
 
 
+def resolution_warning(plan: JobPlan, options: RunOptions) -> str | None:
+    """A warning when the frames are too far from the buildings for the texel resolution: most
+    observations would be coarser than `max_texel_ratio` texels per pixel and be dropped."""
+    cam = plan.package.manifest.camera
+    res = []
+    for u in plan.units:
+        lo, hi = u.building.bounds()
+        for p in u.poses:
+            res.append(float(np.linalg.norm(np.clip(p.center, lo, hi) - p.center)) / max(cam.fx, cam.fy))
+    if not res:
+        return None
+    typical = float(np.median(res))  # m/px at the nearest point, head-on: a best case
+    ratio = options.unit.visibility.max_texel_ratio
+    if typical > ratio / options.resolution_px_per_m:
+        suggest = max(0.5, round(ratio / typical / 2, 1))
+        return (
+            f"the frames see the buildings at about {typical:.2f} m per pixel at best: at "
+            f"{options.resolution_px_per_m:g} texels/m most observations are too coarse to use; "
+            f"try --resolution {suggest:g}"
+        )
+    return None
+
+
 def _value_range(results: Sequence[BuildingResult]) -> tuple[float, float]:
     """Display range: 1st and 99th percentile of observed surface medians and extremes."""
     lo = [s.temperature["p05"] for r in results for s in r.surfaces if s.temperature]
@@ -178,6 +202,7 @@ class JobPlan:
     package: SequencePackage
     priors: list[Pose]
     units: list[BuildingUnit]
+    warning: str | None = None
 
 
 def plan_job(
@@ -236,7 +261,9 @@ def plan_job(
     except BaseException:
         pkg.close()
         raise
-    return JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units)
+    plan = JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units)
+    plan.warning = resolution_warning(plan, options)
+    return plan
 
 
 def run_job(
@@ -326,6 +353,7 @@ def _run_planned(
                 if u.building.id in by_id
             ],
             "failed": [{"id": f.building_id, "error": f.error} for f in failures],
+            "warnings": [plan.warning] if plan.warning else [],
         },
     )
     report("write", 4, 4)
@@ -338,6 +366,7 @@ def _run_planned(
         units_frames=frames_of,
         timings_s=timings,
         refine=options.refine,
+        warning=plan.warning,
     )
 
 

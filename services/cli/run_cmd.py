@@ -116,6 +116,8 @@ def run(
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(code=2) from exc
     console.print(summary_table(summary))
+    if summary.warning:
+        console.print(f"[yellow]warning:[/] {summary.warning}")
     for f in summary.failures:
         console.print(f"[red]failed:[/] building {f.building_id}: {f.error}")
     t = summary.timings_s

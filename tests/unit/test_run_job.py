@@ -194,3 +194,15 @@ def test_8bit_frames_keep_their_values_in_the_tiles(tmp_path):
     run_job(gml, pkg8, tmp_path / "o8", RunOptions(display=False))
     dn = cv2.imread(str(tmp_path / "o8" / "textures" / "B8_0.png"), cv2.IMREAD_UNCHANGED)
     assert set(np.unique(dn).tolist()) == {0, 200}
+
+
+def test_a_texel_resolution_finer_than_the_frames_can_give_is_warned_about(scene):
+    from services.runner import plan_job
+
+    _, gml, pkg, _, _ = scene
+    fine = plan_job(gml, pkg, RunOptions(resolution_px_per_m=200))
+    ok = plan_job(gml, pkg, RunOptions(resolution_px_per_m=10))
+    fine.package.close()
+    ok.package.close()
+    assert fine.warning is not None and "--resolution" in fine.warning
+    assert ok.warning is None
