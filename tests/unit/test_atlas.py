@@ -97,3 +97,18 @@ def test_no_observation_gives_no_appearance():
         "B", [b.polygons[0]], [g], [np.full(g.shape, np.nan, np.float32)], Radiometry(), "t"
     )
     assert tiles == () and app is None
+
+
+def test_gutter_filling_copies_edge_values_outwards_and_keeps_the_texels():
+    b = box_building("B", 0, 0, 4, 4, 3)
+    g = texel_grid(b.polygons[0], "B", TexelOptions(resolution_px_per_m=10))
+    v = np.full(g.shape, 280.0, np.float32)
+    rad = Radiometry()
+    plain, _ = build_atlas("B", [b.polygons[0]], [g], [v], rad, "t", AtlasOptions(gutter=2))
+    filled, _ = build_atlas(
+        "B", [b.polygons[0]], [g], [v], rad, "t", AtlasOptions(gutter=2, fill_gutter=True)
+    )
+    a, f = plain[0].dn, filled[0].dn
+    assert a.shape == f.shape
+    assert (a == 0).sum() > 0 and (f == 0).sum() == 0  # the 2-texel gutter is filled
+    assert np.array_equal(a[a > 0], f[a > 0])
