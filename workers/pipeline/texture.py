@@ -331,8 +331,14 @@ def texture_frame(
         surf, tex = surfaces[k], textures[k]
         rows, cols = surf.rows[idx], surf.cols[idx]
         values = sample_bilinear(image, uv)
-        if fusion.align and tex.observed.any():
-            shift = align_partial(tex.value, tex.partial(rows, cols, values), fusion.alignment)
+        if fusion.align and len(rows) >= fusion.alignment.min_overlap_texels:
+            # the partial texture's bounding box (one texel wider): all the overlap there is
+            H, W = tex.value.shape
+            r0, r1 = max(int(rows.min()) - 1, 0), min(int(rows.max()) + 2, H)
+            c0, c1 = max(int(cols.min()) - 1, 0), min(int(cols.max()) + 2, W)
+            part = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+            part[rows - r0, cols - c0] = values
+            shift = align_partial(tex.value[r0:r1, c0:c1], part, fusion.alignment)
             if shift is not None and math.hypot(shift[0], shift[1]) >= fusion.deadband_texels:
                 dx, dy, _ = shift
                 xy = np.stack([cols + 0.5 + dx, rows + 0.5 + dy], axis=1)
