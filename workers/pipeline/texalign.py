@@ -36,7 +36,7 @@ class AlignOptions:
             overlap (around its centre), which bounds its cost on large surfaces.
     """
 
-    max_shift_texels: float = 2.0
+    max_shift_texels: float = 3.0
     min_peak: float = 0.1
     min_contrast: float = 0.05
     min_overlap_texels: int = 400
@@ -92,9 +92,11 @@ def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def refine_shift(
     fused: np.ndarray, partial: np.ndarray, d: tuple[float, float], options: AlignOptions
-) -> tuple[float, float] | None:
+) -> tuple[float, float, float] | None:
     """Gauss-Newton refinement of `d = (dx, dy)` minimising Σ (partial(x) − fused(x − d))² over
-    texels valid in both; None when the system is ill-conditioned (no structure)."""
+    texels valid in both -> `(dx, dy, sigma)`, `sigma` the standard deviation of the shift's
+    length from the residuals (texels, ignoring their spatial correlation: a lower bound);
+    None when the system is ill-conditioned (no structure)."""
     rows, cols = np.nonzero(np.isfinite(partial))
     if len(rows) > options.max_lk_texels:
         step = math.ceil(len(rows) / options.max_lk_texels)
@@ -102,6 +104,7 @@ def refine_shift(
     p = partial[rows, cols].astype(np.float64)
     f = fused.astype(np.float64)
     dx, dy = d
+    sigma = float("inf")
     for _ in range(options.refine_iterations):
         x, y = cols - dx, rows - dy
         fs = _bilinear(f, x, y)
@@ -119,16 +122,21 @@ def refine_shift(
         # p ≈ fused(x − d − δ) ≈ fs − g·δ  =>  g·δ ≈ fs − p
         delta = np.linalg.solve(A, np.array([gx @ r, gy @ r]))
         dx, dy = dx + float(delta[0]), dy + float(delta[1])
+        e = r - gx * delta[0] - gy * delta[1]
+        s2 = float(e @ e) / max(len(e) - 3, 1)
+        sigma = math.sqrt(s2 / eig[0])
         if math.hypot(float(delta[0]), float(delta[1])) < 1e-3:
             break
-    return dx, dy
+    return dx, dy, sigma
 
 
 def align_partial(
     fused: np.ndarray, partial: np.ndarray, options: AlignOptions
-) -> tuple[float, float, float] | None:
-    """Shift `(dx, dy, peak)` of `partial (H, W)` against `fused (H, W)` (NaN = no value), with
-    `partial(x) ≈ fused(x − d)`; None when rejected (see the module docstring)."""
+) -> tuple[float, float, float, float] | None:
+    """Shift `(dx, dy, peak, sigma)` of `partial (H, W)` against `fused (H, W)` (NaN = no value),
+    with `partial(x) ≈ fused(x − d)`, the correlation peak and the shift's standard deviation
+    (texels; inf without the least-squares refinement); None when rejected (see the module
+    docstring)."""
     both = np.isfinite(fused) & np.isfinite(partial)
     if int(both.sum()) < options.min_overlap_texels:
         return None
@@ -161,12 +169,13 @@ def align_partial(
     dx, dy, peak = phase_correlation(a, b)
     if peak < options.min_peak or math.hypot(dx, dy) > options.max_shift_texels + 1.0:
         return None
+    sigma = float("inf")
     if options.refine_iterations > 0:
         part = np.where(win, b, np.nan)
         refined = refine_shift(fa, part, (dx, dy), options)
         if refined is None:
             return None
-        dx, dy = refined
+        dx, dy, sigma = refined
     if not (math.isfinite(dx) and math.isfinite(dy)) or math.hypot(dx, dy) > options.max_shift_texels:
         return None
-    return float(dx), float(dy), float(peak)
+    return float(dx), float(dy), float(peak), float(sigma)

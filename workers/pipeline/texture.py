@@ -43,6 +43,9 @@ class FusionOptions:
         align: align each frame's partial texture to the fused one before merging.
         alignment: options of that alignment (phase correlation, bounds, rejection).
         deadband_texels: estimated shifts shorter than this are treated as zero (estimation noise).
+        min_significance: a shift is applied only when it is this many of its standard deviations
+            long (the deviation from the residuals ignores their spatial correlation, hence the
+            large factor).
         improve_factor: a later observation replaces a fused texel only when its local
             resolution is smaller than `improve_factor` × the fused one.
     """
@@ -50,6 +53,7 @@ class FusionOptions:
     align: bool = True
     alignment: AlignOptions = field(default_factory=AlignOptions)
     deadband_texels: float = 0.1
+    min_significance: float = 5.0
     improve_factor: float = 1.0
 
 
@@ -339,8 +343,10 @@ def texture_frame(
             part = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
             part[rows - r0, cols - c0] = values
             shift = align_partial(tex.value[r0:r1, c0:c1], part, fusion.alignment)
-            if shift is not None and math.hypot(shift[0], shift[1]) >= fusion.deadband_texels:
-                dx, dy, _ = shift
+            if shift is not None and math.hypot(shift[0], shift[1]) >= max(
+                fusion.deadband_texels, fusion.min_significance * shift[3]
+            ):
+                dx, dy = shift[0], shift[1]
                 xy = np.stack([cols + 0.5 + dx, rows + 0.5 + dy], axis=1)
                 uv_s, _ = pose.project(camera, surf.grid.points_at(xy))
                 inside = camera.in_image(uv_s, margin=0.0)
