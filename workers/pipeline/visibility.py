@@ -6,8 +6,11 @@ building that can occlude it). Out: cheap per-box frustum decisions, and per tex
 position `(N, 2)` (pixel centres at integers), the depth and a visibility mask.
 
 A texel is visible when it projects inside the frame (with a margin), lies in front of the
-camera, its surface faces the camera within a maximum viewing angle, and nothing in the scene
-lies between it and the projection centre.
+camera, its surface faces the camera within a maximum viewing angle, and the pixels bilinear
+sampling reads (plus a blur margin) all see the texel's own plane at the texel's distance: the
+occlusion test by ray casting through the whole scene, which also keeps samples from mixing the
+surface with the sky or other surfaces at silhouettes (`OcclusionScene`). Texels on a wall
+shared with a touching building are never visible (`buried_texels`).
 """
 
 from __future__ import annotations
