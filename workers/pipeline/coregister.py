@@ -120,6 +120,10 @@ class CoregisterOptions:
     # ... the minimum must lower the typical mean edge distance by this share, else no joint
     # correction is applied and every frame searches on its own ...
     joint_coarse_min_gain: float = 0.35
+    # ... up to this many distinct minima, verified by the fine stage on `verify_frames` frames
+    # with the scene wireframe (the best confirmed one is applied) ...
+    joint_coarse_candidates: int = 3
+    verify_frames: int = 3
     # ... and rolls about the optical axis (degrees; boresight errors of several degrees)
     joint_coarse_rolls_deg: tuple[float, ...] = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)
     # per-frame coarse search radius after the joint one, pixels (0: none; the per-frame search
@@ -228,8 +232,10 @@ def refine_building(
     common = None
     if options.joint_coarse:
         coarse_wf = scene_wf if (options.joint_coarse_scene and scene_wf is not None) else wf
-        common = _joint_coarse(camera, coarse_wf, raycaster, frames, images, prior, options)
-        if common is not None:
+        found = _joint_coarse(camera, coarse_wf, raycaster, frames, images, prior, options)
+        if found:
+            fo_v = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
+            common = _verify(camera, coarse_wf, raycaster, frames, images, prior, infos, found, fo_v, options)
             # the common correction is a sequence-level estimate: pass 1 is centred on it
             starts = {i: apply_coarse(camera, prior[i], common, options.fit) for i in frames}
             fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
@@ -314,7 +320,7 @@ def _sigma_px(camera: Camera, pose: Pose, X: np.ndarray, cov: np.ndarray) -> flo
 
 def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int],
                   images: Mapping[int, np.ndarray], prior: Mapping[int, Pose],
-                  options: CoregisterOptions) -> tuple[np.ndarray, float, float, float] | None:
+                  options: CoregisterOptions) -> list[tuple[np.ndarray, float, float, float]]:
     """Common coarse correction of (up to `joint_coarse_max_frames`) frames, see `joint_coarse`."""
     # the search runs on frames downsampled by `joint_coarse_downsample` (a scaled camera)
     ds = max(int(options.joint_coarse_downsample), 1)
@@ -344,9 +350,29 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
         vis_list.append(vis)
         feats_list.append(feats)
     if not poses:
-        return None
-    common = joint_coarse(cam, poses, vis_list, feats_list, fo, options.joint_coarse_rolls_deg,
-                          options.joint_coarse_min_gain)
-    if common is None:
-        return None
-    return (common[0] * ds, *common[1:])
+        return []
+    found = joint_coarse(cam, poses, vis_list, feats_list, fo, options.joint_coarse_rolls_deg,
+                         options.joint_coarse_min_gain, options.joint_coarse_candidates)
+    return [(c[0] * ds, *c[1:]) for c in found]
+
+
+def _verify(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int],
+            images: Mapping[int, np.ndarray], prior: Mapping[int, Pose], infos: Mapping[int, np.ndarray],
+            candidates: list[tuple[np.ndarray, float, float, float]], fo: FrameFitOptions,
+            options: CoregisterOptions) -> tuple[np.ndarray, float, float, float]:
+    """The candidate whose corrected priors the fine stage confirms best on a few frames (sum of
+    edge support of the converged fits), the first on ties."""
+    if len(candidates) == 1:
+        return candidates[0]
+    n = min(len(frames), options.verify_frames)
+    pick = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n).round().astype(int))]
+    scores = []
+    for c in candidates:
+        total = 0.0
+        for i in pick:
+            start = apply_coarse(camera, prior[i], c, options.fit)
+            f = fit_frame(camera, wf, raycaster, images[i], start, infos[i], start, fo, options.edges,
+                          options.features, coarse=False)
+            total += f.support if f.converged else 0.0
+        scores.append(total)
+    return candidates[int(np.argmax(scores))]

@@ -57,22 +57,24 @@ def joint_coarse(
     options: FrameFitOptions,
     rolls_deg: tuple[float, ...] = (0.0,),
     min_gain: float = 0.35,
-) -> tuple[np.ndarray, float, float, float] | None:
-    """Common coarse correction of several frames -> (image shift `(2,)` px at the principal
-    point, depth offset along the optical axis (m), roll about it (rad), median depth (m)), or None
-    without usable frames.
+    candidates: int = 1,
+) -> list[tuple[np.ndarray, float, float, float]]:
+    """Common coarse corrections of several frames, best first: each (image shift `(2,)` px at
+    the principal point, depth offset along the optical axis (m), roll about it (rad), median
+    depth (m)); empty without usable frames or without a distinct minimum.
 
     The score maps of all frames over the same depth offsets (steps × the median sample depth)
-    and shifts are averaged; `apply_coarse` turns the result into each frame's pose. None also
-    when the minimum lies on the border of the search window or does not lower the typical score
-    by `min_gain` (no distinct common signal).
+    and shifts are averaged; `apply_coarse` turns a result into each frame's pose. A candidate
+    is a local minimum inside the search window that lowers the typical score by `min_gain`; up
+    to `candidates` of them, at least 3 level pixels apart in shift (for verification by the
+    caller: repetitive scenes have several similar minima).
     """
     depths = []
     for pose, vis in zip(poses, visible, strict=True):
         _, z = pose.project(camera, vis.points)
         depths.append(float(np.median(z)))
     if not depths:
-        return None
+        return []
     dmed = float(np.median(depths))
     steps = np.clip(np.asarray(options.coarse_depth_steps) * dmed, -options.coarse_max_depth_m,
                     options.coarse_max_depth_m)
@@ -81,20 +83,29 @@ def joint_coarse(
         sc = coarse_scores(camera, pose, vis, feats, steps, options, np.radians(rolls_deg))
         total = sc if total is None else total + sc
     if total is None:
-        return None
+        return []
     total = total / len(poses) + shift_penalty(total.shape, options)[None]
-    k, iy, ix = np.unravel_index(int(np.argmin(total)), total.shape)
     r = total.shape[-1] // 2
-    # a minimum inside the search window, clearly below the typical score (mean edge distance
-    # reduced by at least `min_gain`); else the frames carry no usable common signal (e.g.
-    # close-range drives that see facade interiors and hardly any model edge)
-    best = float(total[k, iy, ix])
     typical = float(np.median(total))
-    if min(ix, iy) == 0 or max(ix, iy) == 2 * r or best > (1.0 - min_gain) * typical:
-        return None
-    shift = np.array([ix - r, iy - r], dtype=np.float64) * options.coarse_level
-    kd, kq = divmod(int(k), len(rolls_deg))
-    return shift, float(steps[kd]), float(np.radians(rolls_deg[kq])), dmed
+    # best over depth and roll per shift, then minima with suppression of their neighbourhood
+    flat = total.min(axis=0)
+    which = total.argmin(axis=0)
+    work = flat.copy()
+    out = []
+    for _ in range(max(candidates, 1)):
+        iy, ix = np.unravel_index(int(np.argmin(work)), work.shape)
+        best = float(work[iy, ix])
+        # inside the window and clearly below the typical score; else no usable common signal
+        # (e.g. close-range drives that see facade interiors and hardly any model edge)
+        inside = min(ix, iy) > 0 and max(ix, iy) < 2 * r
+        if not np.isfinite(best) or not inside or best > (1.0 - min_gain) * typical:
+            break
+        k = int(which[iy, ix])
+        kd, kq = divmod(k, len(rolls_deg))
+        shift = np.array([ix - r, iy - r], dtype=np.float64) * options.coarse_level
+        out.append((shift, float(steps[kd]), float(np.radians(rolls_deg[kq])), dmed))
+        work[max(iy - 3, 0): iy + 4, max(ix - 3, 0): ix + 4] = np.inf
+    return out
 
 
 def apply_coarse(camera: Camera, pose: Pose, common: tuple[np.ndarray, float, float, float],
