@@ -206,3 +206,40 @@ def test_a_texel_resolution_finer_than_the_frames_can_give_is_warned_about(scene
     ok.package.close()
     assert fine.warning is not None and "--resolution" in fine.warning
     assert ok.warning is None
+
+
+def test_refinement_is_reported_and_a_failing_refinement_keeps_the_priors(scene, tmp_path, monkeypatch):
+    """The orientation module's answer (here a stand-in) goes to orientation.json; when it raises,
+    the building is textured with its priors."""
+    import importlib.util
+    import sys
+    import types
+
+    _, gml, pkg, _, poses = scene
+
+    class Refined:
+        def __init__(self, frame, pose, status):
+            self.frame, self.pose, self.status, self.rms_px, self.matches = frame, pose, status, 0.4, 12
+
+    def refine_building(camera, building, raycaster, frames, frame_source, prior, accuracy, times=None):
+        if building.id == "B2":
+            raise RuntimeError("no edges")
+        return {f: Refined(f, prior[f], "refined" if f % 2 == 0 else "prior") for f in frames}
+
+    fake = types.ModuleType("workers.pipeline.coregister")
+    fake.__spec__ = importlib.util.spec_from_loader("workers.pipeline.coregister", loader=None)
+    fake.refine_building = refine_building
+    monkeypatch.setitem(sys.modules, "workers.pipeline.coregister", fake)
+    run_job(gml, pkg, tmp_path / "r", RunOptions(refine=True, display=False))
+    doc = json.loads((tmp_path / "r" / "orientation.json").read_text())
+    entries = [(f["index"], r["building"], r["status"]) for f in doc["frames"] for r in f["refined"]]
+    b1 = [e for e in entries if e[1] == "B1"]
+    assert b1 and all(st == ("refined" if i % 2 == 0 else "prior") for i, _, st in b1)
+    assert all(st == "prior" for _, b, st in entries if b == "B2")  # failed: priors kept
+    ref = next(r for f in doc["frames"] for r in f["refined"] if r["status"] == "refined")
+    assert ref["rms_px"] == 0.4 and ref["matches"] == 12
+    assert np.allclose(
+        ref["center"], poses[next(f["index"] for f in doc["frames"] if ref in f["refined"])].center
+    )
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert rep["refine"] is True and {b["id"] for b in rep["buildings"]} == {"B1", "B2"}

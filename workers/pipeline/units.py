@@ -12,6 +12,7 @@ no files.
 from __future__ import annotations
 
 import importlib
+import logging
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -34,6 +35,8 @@ from workers.pipeline.visibility import (
     buried_texels,
     pixel_rays,
 )
+
+_log = logging.getLogger(__name__)
 
 
 class UnitError(ValueError):
@@ -256,17 +259,11 @@ def _refine(unit: BuildingUnit, raycaster: RayCaster) -> tuple[dict[int, Pose], 
     except ImportError:
         return prior, ()
     extra = {} if unit.options.refine_options is None else {"options": unit.options.refine_options}
-    refined = coregister.refine_building(
-        unit.camera,
-        unit.building,
-        raycaster,
-        list(unit.frames),
-        unit.frame_source,
-        prior,
-        unit.accuracy,
-        times=dict(zip(unit.frames, unit.times, strict=True)),
-        **extra,
-    )
+    try:
+        refined = _call_refine(coregister, unit, raycaster, prior, extra)
+    except Exception:  # orientation failed: texture with the priors, say so
+        _log.exception("orientation of building %s failed; its prior poses are kept", unit.building.id)
+        return prior, tuple(FramePose(f, unit.building.id, prior[f], "prior") for f in unit.frames)
     poses = dict(prior)
     records = []
     for f in unit.frames:
@@ -286,6 +283,23 @@ def _refine(unit: BuildingUnit, raycaster: RayCaster) -> tuple[dict[int, Pose], 
             )
         )
     return poses, tuple(records)
+
+
+def _call_refine(
+    coregister: object, unit: BuildingUnit, raycaster: RayCaster, prior: dict[int, Pose], extra: dict
+) -> Mapping[int, object]:
+    """`coregister.refine_building` for the unit's frames."""
+    return coregister.refine_building(  # type: ignore[attr-defined]
+        unit.camera,
+        unit.building,
+        raycaster,
+        list(unit.frames),
+        unit.frame_source,
+        prior,
+        unit.accuracy,
+        times=dict(zip(unit.frames, unit.times, strict=True)),
+        **extra,
+    )
 
 
 _PERCENTILES = {"p05": 5, "p25": 25, "median": 50, "p75": 75, "p95": 95}
