@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -199,3 +200,88 @@ def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
             for s in r.surfaces
         ],
     }
+
+
+def value_range(results: Sequence[BuildingResult]) -> tuple[float, float]:
+    """Display range of a job: 5th percentile of the surfaces' p05, 95th of their p95."""
+    lo = [s.temperature["p05"] for r in results for s in r.surfaces if s.temperature]
+    hi = [s.temperature["p95"] for r in results for s in r.surfaces if s.temperature]
+    if not lo:
+        return 0.0, 1.0
+    return float(np.percentile(lo, 5)), float(np.percentile(hi, 95))
+
+
+def write_results_folder(
+    out_dir: str | Path,
+    *,
+    buildings: Sequence[Building],
+    results: Sequence[BuildingResult],
+    manifest: SequenceManifest,
+    priors: Sequence[Pose],
+    srs_name: str | None,
+    theme: str,
+    resolution_px_per_m: float,
+    display: bool = True,
+    frames_of: Mapping[str, int] | None = None,
+    timings_s: dict[str, float] | None = None,
+    job: Mapping[str, Any] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    write_time_offset_s: float = 0.0,
+    started: float | None = None,
+) -> None:
+    """Write a whole results folder (`spec/results-format.md`) from building results: the
+    in-process run and the service (results loaded from the database) share it.
+
+    Tiles with pixels are written; tiles with an empty `dn` are taken as already written (the
+    display copies are then made from the files). `frames_of` gives the frames per building for
+    the report, `job` extra report fields; `timings_s` gets the `write` stage time.
+    """
+    t0 = started if started is not None else time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    step = progress or (lambda done, total: None)
+    step(0, 4)
+    for r in results:
+        for tile in r.tiles:
+            if tile.dn.size:
+                write_tile(out, tile)
+    if display:
+        rng = value_range(results)
+        for r in results:
+            for tile in r.tiles:
+                write_display_tile(
+                    out, tile if tile.dn.size else read_tile(out, tile.name), r.radiometry, rng
+                )
+    step(1, 4)
+    by_id = {r.building_id: r for r in results}
+    write_textured_gml(out / "textured.gml", buildings, by_id, srs_name, display)
+    step(2, 4)
+    write_json(out / "orientation.json", orientation_document(manifest, priors, results))
+    step(3, 4)
+    timings = timings_s if timings_s is not None else {}
+    timings["write"] = time.perf_counter() - t0 + write_time_offset_s
+    stage_units: dict[str, float] = {}
+    for r in results:
+        for key, val in r.timings_s.items():
+            stage_units[key] = stage_units.get(key, 0.0) + float(val)
+    frames_of = frames_of or {}
+    order = {b.id: k for k, b in enumerate(buildings)}
+    doc: dict[str, Any] = {
+        "format": REPORT_FORMAT,
+        "theme": theme,
+        "resolution_px_per_m": resolution_px_per_m,
+        "frames": len(manifest.frames),
+        "buildings_processed": len(results),
+        "buildings_textured": sum(1 for r in results if r.appearance is not None),
+        **dict(job or {}),
+        "timings_s": dict(timings),
+        "unit_stage_timings_s": stage_units,
+        "buildings": [
+            building_report(
+                r, frames_of.get(r.building_id, len({f for s in r.surfaces for f in s.frames_used}))
+            )
+            for r in sorted(results, key=lambda r: order.get(r.building_id, len(order)))
+        ],
+    }
+    write_json(out / "report.json", doc)
+    step(4, 4)

@@ -23,16 +23,7 @@ import numpy as np
 
 from db.citygml.reader import read_model
 from db.sequence_package import SequencePackage, open_package
-from services.results_files import (
-    REPORT_FORMAT,
-    building_report,
-    orientation_document,
-    read_tile,
-    write_display_tile,
-    write_json,
-    write_textured_gml,
-    write_tile,
-)
+from services.results_files import write_results_folder, write_tile
 from workers.pipeline.citymodel import Building, ModelHeader
 from workers.pipeline.georef import prior_poses
 from workers.pipeline.pose import Pose
@@ -186,15 +177,6 @@ def resolution_warning(plan: JobPlan, options: RunOptions) -> str | None:
     return None
 
 
-def _value_range(results: Sequence[BuildingResult]) -> tuple[float, float]:
-    """Display range: 1st and 99th percentile of observed surface medians and extremes."""
-    lo = [s.temperature["p05"] for r in results for s in r.surfaces if s.temperature]
-    hi = [s.temperature["p95"] for r in results for s in r.surfaces if s.temperature]
-    if not lo:
-        return 0.0, 1.0
-    return float(np.percentile(lo, 5)), float(np.percentile(hi, 95))
-
-
 @dataclass
 class JobPlan:
     """An ingested and planned job: what the units stage needs (the service dispatches `units`
@@ -318,50 +300,33 @@ def _run_planned(
 
     # -- write -------------------------------------------------------------------------------
     t0 = time.perf_counter()
-    report("write", 0, 4)
-    if options.display:
-        rng = _value_range(results)
-        for r in results:
-            for name in (t.name for t in r.tiles):
-                write_display_tile(out, read_tile(out, name), r.radiometry, rng)
-    report("write", 1, 4)
-    by_id = {r.building_id: r for r in results}
-    write_textured_gml(out / "textured.gml", buildings, by_id, header.srs_name, options.display)
-    report("write", 2, 4)
-    write_json(out / "orientation.json", orientation_document(manifest, priors, results))
-    report("write", 3, 4)
-    timings["write"] = time.perf_counter() - t0 + tiles_written
     frames_of = {u.building.id: len(u.frames) for u in units}
-    stage_units: dict[str, float] = {}
-    for r in results:
-        for key, val in r.timings_s.items():
-            stage_units[key] = stage_units.get(key, 0.0) + float(val)
-    write_json(
-        out / "report.json",
-        {
-            "format": REPORT_FORMAT,
-            "city_model": str(city_gml),
-            "package": str(package),
-            "theme": options.theme,
-            "resolution_px_per_m": options.resolution_px_per_m,
-            "refine": options.refine,
-            "workers": options.workers,
-            "frames": len(manifest.frames),
-            "buildings_in_model": len(buildings),
-            "buildings_processed": len(results),
-            "buildings_textured": sum(1 for r in results if r.appearance is not None),
-            "timings_s": dict(timings),
-            "unit_stage_timings_s": stage_units,
-            "buildings": [
-                building_report(by_id[u.building.id], frames_of[u.building.id])
-                for u in units
-                if u.building.id in by_id
-            ],
-            "failed": [{"id": f.building_id, "error": f.error} for f in failures],
-            "warnings": [plan.warning] if plan.warning else [],
-        },
+    job = {
+        "city_model": str(city_gml),
+        "package": str(package),
+        "refine": options.refine,
+        "workers": options.workers,
+        "buildings_in_model": len(buildings),
+        "failed": [{"id": f.building_id, "error": f.error} for f in failures],
+        "warnings": [plan.warning] if plan.warning else [],
+    }
+    write_results_folder(
+        out,
+        buildings=buildings,
+        results=results,
+        manifest=manifest,
+        priors=priors,
+        srs_name=header.srs_name,
+        theme=options.theme,
+        resolution_px_per_m=options.resolution_px_per_m,
+        display=options.display,
+        frames_of=frames_of,
+        timings_s=timings,
+        job=job,
+        progress=lambda done, total: report("write", done, total),
+        write_time_offset_s=tiles_written,
+        started=t0,
     )
-    report("write", 4, 4)
     return RunSummary(
         out_dir=out,
         n_frames=len(manifest.frames),

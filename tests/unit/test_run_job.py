@@ -243,3 +243,34 @@ def test_refinement_is_reported_and_a_failing_refinement_keeps_the_priors(scene,
     )
     rep = json.loads((tmp_path / "r" / "report.json").read_text())
     assert rep["refine"] is True and {b["id"] for b in rep["buildings"]} == {"B1", "B2"}
+
+
+def test_results_folder_from_in_memory_results_as_the_service_writes_it(scene, tmp_path):
+    from db.sequence_package import open_package
+    from services.results_files import write_results_folder
+
+    _, gml, pkg_path, buildings, poses = scene
+    pkg = open_package(pkg_path)
+    units = plan_units(buildings, CAM, poses, pkg.frames, pkg.manifest.radiometry)
+    results = [run_building_unit(u) for u in units]
+    write_results_folder(
+        tmp_path / "svc",
+        buildings=buildings,
+        results=results,
+        manifest=pkg.manifest,
+        priors=poses,
+        srs_name="EPSG:25832",
+        theme="thermal-ir",
+        resolution_px_per_m=10.0,
+    )
+    for name in (
+        "textured.gml",
+        "orientation.json",
+        "report.json",
+        "textures/B1_0.png",
+        "textures/B1_0-display.png",
+    ):
+        assert (tmp_path / "svc" / name).is_file(), name
+    assert validate_citygml2(tmp_path / "svc" / "textured.gml") == []
+    rep = json.loads((tmp_path / "svc" / "report.json").read_text())
+    assert [b["id"] for b in rep["buildings"]] == ["B1", "B2"] and "write" in rep["timings_s"]
