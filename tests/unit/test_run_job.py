@@ -249,7 +249,7 @@ def test_results_folder_from_in_memory_results_as_the_service_writes_it(scene, t
     from db.sequence_package import open_package
     from services.results_files import write_results_folder
 
-    _, gml, pkg_path, buildings, poses = scene
+    _, _, pkg_path, buildings, poses = scene
     pkg = open_package(pkg_path)
     units = plan_units(buildings, CAM, poses, pkg.frames, pkg.manifest.radiometry)
     results = [run_building_unit(u) for u in units]
