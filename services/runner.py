@@ -14,14 +14,15 @@ from __future__ import annotations
 import importlib.util
 import multiprocessing
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from db.citygml.reader import read_model
+from db.citygml.reader import iter_buildings, read_header
 from db.sequence_package import SequencePackage, open_package
 from services.results_files import write_results_folder, write_tile
 from workers.pipeline.citymodel import Building, ModelHeader
@@ -145,6 +146,28 @@ def run_units(units: Sequence[BuildingUnit], workers: int) -> Iterator[BuildingR
             yield fut.result()
 
 
+def near_buildings(
+    buildings: Iterable[Building], priors: Sequence[Pose], reach_m: float
+) -> tuple[list[Building], set[str]]:
+    """The buildings whose bounding box comes within `reach_m` of a projection centre, in input
+    order, and the ids of all buildings seen (to check requested ids)."""
+    centres = np.array([p.center for p in priors]).reshape(-1, 3)
+    tree = cKDTree(centres) if len(centres) else None
+    keep: list[Building] = []
+    ids: set[str] = set()
+    for b in buildings:
+        ids.add(b.id)
+        if tree is None:
+            continue
+        lo, hi = b.bounds()
+        d, _ = tree.query(
+            (lo + hi) / 2.0, distance_upper_bound=reach_m + float(np.linalg.norm(hi - lo)) / 2.0
+        )
+        if np.isfinite(d):
+            keep.append(b)
+    return keep, ids
+
+
 def output_radiometry(pkg: SequencePackage) -> Radiometry:
     """The tiles' radiometry: the sequence's, except for 8-bit frames, whose values are kept as
     they are (scale 1, offset 0; `results-format.md`)."""
@@ -189,6 +212,7 @@ class JobPlan:
     package: SequencePackage
     priors: list[Pose]
     units: list[BuildingUnit]
+    n_model_buildings: int = 0
     warning: str | None = None
 
 
@@ -213,18 +237,21 @@ def plan_job(
     report("ingest", 0, 3)
     if not Path(city_gml).is_file():
         raise RunError(f"{city_gml}: city model not found")
-    header, buildings = read_model(city_gml)
-    ids = {b.id for b in buildings}
-    if options.buildings is not None:
-        missing = [b for b in options.buildings if b not in ids]
-        if missing:
-            raise RunError(f"buildings: not in {city_gml}: {', '.join(missing)}")
+    header = read_header(city_gml)
     report("ingest", 1, 3)
     pkg = open_package(package)
     try:
         manifest = pkg.manifest
-        report("ingest", 2, 3)
         priors = prior_poses(manifest, header.srs_name)
+        report("ingest", 2, 3)
+        # stream the model; keep the buildings within reach of the cameras (memory follows the
+        # drive, not the city)
+        reach = min(options.plan.max_distance_m, options.unit.visibility.max_distance_m)
+        buildings, ids = near_buildings(iter_buildings(city_gml), priors, reach)
+        if options.buildings is not None:
+            missing = [b for b in options.buildings if b not in ids]
+            if missing:
+                raise RunError(f"buildings: not in {city_gml}: {', '.join(missing)}")
         report("ingest", 3, 3)
         timings["ingest"] = time.perf_counter() - t0
 
@@ -241,14 +268,16 @@ def plan_job(
             accuracy=manifest.accuracy,
             options=options.unit_options(),
             plan=options.plan,
-            targets=options.buildings,
+            targets=None
+            if options.buildings is None
+            else [b.id for b in buildings if b.id in options.buildings],
         )
         report("plan", 1, 1)
         timings["plan"] = time.perf_counter() - t0
     except BaseException:
         pkg.close()
         raise
-    plan = JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units)
+    plan = JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units, len(ids))
     plan.warning = resolution_warning(plan, options)
     return plan
 
@@ -306,7 +335,8 @@ def _run_planned(
         "package": str(package),
         "refine": options.refine,
         "workers": options.workers,
-        "buildings_in_model": len(buildings),
+        "buildings_in_model": plan.n_model_buildings,
+        "buildings_near_the_cameras": len(buildings),
         "failed": [{"id": f.building_id, "error": f.error} for f in failures],
         "warnings": [plan.warning] if plan.warning else [],
     }
@@ -330,7 +360,7 @@ def _run_planned(
     return RunSummary(
         out_dir=out,
         n_frames=len(manifest.frames),
-        n_buildings_model=len(buildings),
+        n_buildings_model=plan.n_model_buildings,
         results=results,
         failures=failures,
         units_frames=frames_of,
@@ -352,8 +382,3 @@ def replace_tiles(r: BuildingResult) -> BuildingResult:
         anomalies=r.anomalies,
         timings_s=r.timings_s,
     )
-
-
-def model_buildings(city_gml: str | Path) -> list[Building]:
-    """All top-level buildings of a CityGML file (convenience for callers and tests)."""
-    return read_model(city_gml)[1]

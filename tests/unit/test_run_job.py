@@ -274,3 +274,12 @@ def test_results_folder_from_in_memory_results_as_the_service_writes_it(scene, t
     assert validate_citygml2(tmp_path / "svc" / "textured.gml") == []
     rep = json.loads((tmp_path / "svc" / "report.json").read_text())
     assert [b["id"] for b in rep["buildings"]] == ["B1", "B2"] and "write" in rep["timings_s"]
+
+
+def test_only_buildings_within_reach_of_the_cameras_are_kept():
+    from services.runner import near_buildings
+
+    near = box_building("NEAR", 0, 0, 5, 5, 5)
+    far = box_building("FAR", 900, 900, 905, 905, 5)
+    kept, ids = near_buildings(iter([near, far]), [look_at([2, -10, 1.6], [2, 0, 2])], 300.0)
+    assert [b.id for b in kept] == ["NEAR"] and ids == {"NEAR", "FAR"}
