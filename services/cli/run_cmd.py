@@ -21,14 +21,17 @@ _LABELS = {
 
 
 def summary_table(summary: RunSummary, limit: int = 30) -> Table:
-    """Rich table: one row per processed building (the `limit` with most texels) and a total row."""
+    """Rich table: one row per processed building (the `limit` with most texels) and a total row.
+
+    `cover` is the observed share of the texels of the surfaces that got any texel (surfaces the
+    sequence never saw, e.g. back walls, are not counted)."""
     table = Table(title=f"citytherm run: {summary.out_dir}", show_footer=False)
     for col, justify in (
         ("building", "left"),
         ("frames", "right"),
         ("surfaces", "right"),
         ("texels", "right"),
-        ("observed", "right"),
+        ("cover", "right"),
         ("m/px", "right"),
         ("tiles", "right"),
         ("refined", "right"),
@@ -37,7 +40,7 @@ def summary_table(summary: RunSummary, limit: int = 30) -> Table:
     rows = sorted(summary.results, key=lambda r: -sum(s.texels_observed for s in r.surfaces))
     for r in rows[:limit]:
         obs = sum(s.texels_observed for s in r.surfaces)
-        tot = sum(s.texels_total for s in r.surfaces)
+        tot = sum(s.texels_total for s in r.surfaces if s.texels_observed)
         res = [s.mean_resolution_m for s in r.surfaces if s.texels_observed]
         table.add_row(
             r.building_id if len(r.building_id) <= 24 else "…" + r.building_id[-23:],
@@ -51,7 +54,7 @@ def summary_table(summary: RunSummary, limit: int = 30) -> Table:
         )
     if len(rows) > limit:
         table.add_row(f"... {len(rows) - limit} more", "", "", "", "", "", "", "")
-    tot = summary.texels_total
+    tot = sum(s.texels_total for r in summary.results for s in r.surfaces if s.texels_observed)
     table.add_row(
         f"[bold]total: {len(rows)}[/]",
         str(summary.n_frames),
