@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib.util
 import multiprocessing
+import os
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -104,8 +105,18 @@ class RunSummary:
         return sum(s.texels_total for r in self.results for s in r.surfaces)
 
 
-def _mp_context() -> multiprocessing.context.BaseContext:
-    """`forkserver` where available (no fork of a process that may hold Open3D threads)."""
+#: thread-pool sizes of numerical libraries (OpenBLAS, OpenMP, TBB users such as Open3D, OpenCV)
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "TBB_NUM_THREADS")
+
+
+def _mp_context(workers: int) -> multiprocessing.context.BaseContext:
+    """`forkserver` where available (no fork of a process that may hold Open3D threads).
+
+    Worker processes get thread pools of `cpu_count // workers` threads (set in the environment
+    the server starts with), so that `workers` processes do not oversubscribe the cores."""
+    threads = str(max(1, (os.cpu_count() or 1) // max(1, workers)))
+    for var in _THREAD_VARS:
+        os.environ.setdefault(var, threads)
     methods = multiprocessing.get_all_start_methods()
     if "forkserver" not in methods:
         return multiprocessing.get_context("spawn")
@@ -138,7 +149,7 @@ def run_units(units: Sequence[BuildingUnit], workers: int) -> Iterator[BuildingR
         for u in units:
             yield _run_safely(u)
         return
-    with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=_mp_context()) as pool:
+    with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=_mp_context(workers)) as pool:
         # largest units first: better load balance
         order = sorted(range(len(units)), key=lambda k: -len(units[k].frames))
         futures = [pool.submit(_run_safely, units[k]) for k in order]
