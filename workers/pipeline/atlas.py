@@ -10,6 +10,7 @@ lower-left corner of the image, the centre of texel `(i, j)` of a `W × H` tile 
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from collections.abc import Sequence
@@ -54,9 +55,17 @@ class Placement:
 
 
 def safe_name(text: str) -> str:
-    """A file-name and NCName-safe version of an id (letters, digits, `_`, `-`, `.`)."""
+    """A file-name and NCName-safe version of an id (letters, digits, `_`, `-`, `.`); ids that
+    had to be changed get a short hash of the original, so that distinct ids stay distinct.
+
+    >>> safe_name("BLDG_0815"), safe_name("DEB/LOD2:1")
+    ('BLDG_0815', 'DEB_LOD2_1_75fe53')
+    """
     out = re.sub(r"[^A-Za-z0-9_.-]", "_", text)
-    return out if out[:1].isalpha() or out[:1] == "_" else f"_{out}"
+    out = out if out[:1].isalpha() or out[:1] == "_" else f"_{out}"
+    if out != text:
+        out = f"{out}_{hashlib.sha1(text.encode('utf-8')).hexdigest()[:6]}"
+    return out
 
 
 def pack(
