@@ -3,10 +3,13 @@
 In: a CityGML file, a sequence package, an output folder and `RunOptions`.
 Out: the results folder of `spec/results-format.md` and a `RunSummary`.
 
-Stages: ingest (read the model and the package, georeference the prior poses), plan (which
-frames see which building: `units.plan_units`), units (one `run_building_unit` per building, in a
-process pool with `workers > 1`), write (tiles, `textured.gml`, `orientation.json`,
-`report.json`). The service runs the same units as Celery tasks.
+Stages: ingest (open the package, georeference the prior poses, stream the model keeping the
+buildings within reach of the cameras), plan (which frames see which building:
+`units.plan_units`), units (one `run_building_unit` per building, in a forkserver process pool
+with `workers > 1`, each worker with `cpu_count // workers` library threads; a unit that raises
+is reported, not fatal), write (`results_files.write_results_folder`: tiles, display copies,
+`textured.gml`, `orientation.json`, `report.json`). `plan_job` alone gives the service the units
+to dispatch as Celery tasks; scripts that run pools need the `if __name__ == "__main__"` guard.
 """
 
 from __future__ import annotations
