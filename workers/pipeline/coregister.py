@@ -63,6 +63,7 @@ from workers.pipeline.coregister_frame import (
     pose_delta,
     project_jacobian,
 )
+from workers.pipeline.coregister_joint import JointOptions, joint_fit
 from workers.pipeline.coregister_sequence import apply_coarse, frame_noise_covariance, joint_coarse, predict
 from workers.pipeline.features import FeatureError, FeatureOptions, extract_features
 from workers.pipeline.model_edges import (
@@ -129,6 +130,15 @@ class CoregisterOptions:
     # per-frame coarse search radius after the joint one, pixels (0: none; the per-frame search
     # sees one building only and may jump to a similar neighbour)
     frame_coarse_radius_px: float = 0.0
+    # when the joint coarse search finds no distinct minimum (close-range drives: vertical
+    # corners, window rows), ONE common correction of all frames is adjusted from the stacked
+    # edge observations of every frame against the scene wireframe (`coregister_joint`); when
+    # accepted, pass 1 is centred on it, and a frame still at its prior takes the jointly
+    # corrected pose with status "refined" when its own edge support there reaches
+    # `fit.min_support` and the joint uncertainty projected onto the building is
+    # ≤ `inherit_max_sigma_px`
+    joint_fine: bool = True
+    joint: JointOptions = field(default_factory=JointOptions)
     # per-frame deviation of the correction from its neighbours' (white noise, vibration)
     frame_sigma_deg: float = 0.3
     frame_sigma_m: float = 0.3
@@ -240,6 +250,15 @@ def refine_building(
             starts = {i: apply_coarse(camera, prior[i], common, options.fit) for i in frames}
             fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
             coarse = options.frame_coarse_radius_px > 0
+    joint = None
+    if options.joint_fine and common is None and scene_wf is not None:
+        jf = joint_fit(camera, scene_wf, raycaster, frames, images, prior, infos[frames[len(frames) // 2]],
+                       options.joint, options.fit, options.edges, options.features)
+        if jf.accepted:
+            joint = jf
+            starts = {i: apply_delta(prior[i], jf.delta) for i in frames}
+            fo = replace(fo, coarse_radius_px=0.0)
+            coarse = False
     t = {i: float(times[i]) if times is not None else float(i) for i in frames}
     out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
     rest = [i for i in frames if out[i].status == "prior"]
@@ -251,6 +270,12 @@ def refine_building(
         scene = _orient(camera, scene_wf, raycaster, rest, images, prior, starts, infos, t, fo, coarse,
                         options)
         out.update({i: r for i, r in scene.items() if r.status == "refined"})
+    if joint is not None:
+        for i in frames:
+            if out[i].status == "refined" or joint.support.get(i, 0.0) < options.fit.min_support:
+                continue
+            if _sigma_px(camera, starts[i], wf.vertices, joint.covariance) <= options.inherit_max_sigma_px:
+                out[i] = RefinedPose(i, starts[i], "refined", float("nan"), 0)
     return out
 
 

@@ -1,0 +1,299 @@
+"""Joint orientation of all frames of a building: ONE common correction of the GNSS/INS priors.
+
+In: `Camera`, a wireframe (the whole scene of the ray caster: building and neighbours), the
+`RayCaster`, frames with their images and prior poses, the prior's information matrix and
+`JointOptions`. Out: `JointFit` (the common correction `δ = (ω_cam, dC_world)`, applied to every
+prior with `apply_delta`, its covariance, the mean edge support, acceptance).
+
+Why: the GNSS bias and the boresight misalignment are constant over a building's frames and the
+INS relative trajectory is precise, while a single close-range frame of a drive (vertical
+building corners only, roof and ground lines out of the frame) does not determine its pose.
+Stacking the edge observations of all frames in one adjustment of six parameters determines the
+common correction (vertical corners seen from many positions fix the along/across-track position
+and the heading; frames that see an eave, a roof line or a ground line fix height and pitch).
+
+Two stages:
+
+1. **coarse**: an oriented-gradient score of the projected wireframe samples, summed over frames,
+   for common image shifts on a grid (frames downsampled and smoothed; the score of a sample is
+   the image gradient component along the projected edge's normal minus the one across it,
+   normalised per frame): correspondence-free and insensitive to the window rows the model does
+   not contain (a plain distance transform is not). The best local maxima are candidates;
+2. **fine**: Gauss-Newton of the six common parameters from every frame's edge-normal distances
+   (1-D gradient search along each projected edge sample, `coregister_frame._normal_equations`,
+   Tukey weights) with a shrinking search radius, the prior a weighted observation. Each
+   candidate is run on a few frames; the one with the highest edge support is refined on all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.coregister_coarse import shift_pose
+from workers.pipeline.coregister_frame import (
+    FrameFitOptions,
+    _image_normals,
+    _normal_equations,
+    _visible,
+    frame_box,
+)
+from workers.pipeline.coregister_geometry import apply_delta, pose_delta
+from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
+from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+
+__all__ = ["JointFit", "JointOptions", "joint_fit"]
+
+
+@dataclass(frozen=True)
+class JointOptions:
+    """Parameters of the joint orientation (pixels, full resolution)."""
+
+    # at most this many frames (evenly spread) take part
+    max_frames: int = 40
+    # coarse: frames downsampled by this factor, smoothed with this σ (downsampled pixels) ...
+    coarse_downsample: int = 2
+    coarse_sigma_px: float = 3.0
+    # ... common image shifts up to this radius, on a grid of this step (full-resolution pixels)
+    coarse_radius_px: float = 200.0
+    coarse_step_px: float = 8.0
+    # ... at most this many samples per frame, this many candidates (local maxima at least
+    # `candidate_separation_px` apart)
+    coarse_samples: int = 200
+    candidates: int = 3
+    candidate_separation_px: float = 40.0
+    # fine: edge search radius at the start (shrinks by `radius_decay` per iteration to the
+    # frame fit's minimum), iterations; candidates are compared on `verify_frames` frames with
+    # `verify_iterations` iterations
+    radius_start_px: float = 48.0
+    radius_decay: float = 0.8
+    iterations: int = 14
+    verify_frames: int = 6
+    verify_iterations: int = 10
+    # acceptance: mean edge support over the frames (share of samples with an image edge within
+    # the frame fit's `support_px`), frames that must reach the frame fit's `min_support`, and
+    # the largest plausible correction
+    min_mean_support: float = 0.5
+    min_supported_frames: int = 3
+    max_correction_m: float = 9.0
+    max_correction_deg: float = 8.0
+
+
+@dataclass(frozen=True, eq=False)
+class JointFit:
+    """Result of the joint orientation.
+
+    Attributes:
+        delta: `(6,)` common correction `(ω_cam [rad], dC_world [m])` of every prior.
+        covariance: `(6, 6)` of `delta` (a-posteriori variance factor applied, ≥ 1).
+        support: `{frame: share of visible edge samples with an image edge within support_px}`
+            at the corrected pose (frames that took part).
+        mean_support: mean of `support`.
+        accepted: the acceptance tests passed.
+        reason: why not ("" when accepted).
+    """
+
+    delta: np.ndarray
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
+    support: dict[int, float] = field(default_factory=dict)
+    mean_support: float = 0.0
+    accepted: bool = False
+    reason: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class _Frame:
+    index: int
+    prior: Pose
+    feats: ImageFeatures
+
+
+def joint_fit(
+    camera: Camera,
+    wireframe: Wireframe,
+    raycaster: RayCaster,
+    frames: Sequence[int],
+    images: Mapping[int, np.ndarray],
+    prior: Mapping[int, Pose],
+    prior_info: np.ndarray,
+    options: JointOptions = JointOptions(),
+    fit_options: FrameFitOptions = FrameFitOptions(),
+    edge_options: EdgeOptions = EdgeOptions(),
+    feature_options: FeatureOptions = FeatureOptions(),
+) -> JointFit:
+    """One common correction of the priors of `frames` (see the module docstring).
+
+    `prior_info` `(6, 6)`: information of the prior on the common `δ` (rad⁻², m⁻²).
+    """
+    frames = list(frames)
+    pick = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, min(len(frames), options.max_frames))
+                                         .round().astype(int))] if frames else []
+    margin = options.coarse_radius_px + options.radius_start_px + fit_options.roi_margin_px
+    data: list[_Frame] = []
+    for i in pick:
+        vis = _visible(wireframe, camera, prior[i], raycaster, edge_options, fit_options.max_samples)
+        if len(vis.points) < fit_options.min_samples:
+            continue
+        roi = frame_box(camera, prior[i], vis, margin)
+        if roi is None:
+            continue
+        try:
+            feats = extract_features(images[i], feature_options, roi, points=False)
+        except FeatureError:
+            continue
+        data.append(_Frame(i, prior[i], feats))
+    if len(data) < options.min_supported_frames:
+        return JointFit(delta=np.zeros(6), reason="too few frames see model edges")
+    starts = _coarse_candidates(camera, wireframe, raycaster, data, images, options, fit_options,
+                                edge_options)
+    verify = [data[k] for k in np.unique(np.linspace(0, len(data) - 1, min(len(data), options.verify_frames))
+                                         .round().astype(int))]
+    best = None
+    for d0 in starts:
+        fit = _fine(camera, wireframe, raycaster, verify, d0, prior_info, options.verify_iterations, options,
+                    fit_options, edge_options)
+        if best is None or fit.mean_support > best.mean_support:
+            best = fit
+    assert best is not None
+    fit = _fine(camera, wireframe, raycaster, data, best.delta, prior_info, options.iterations, options,
+                fit_options, edge_options, radius_start=fit_options.edge_radius_start_px / 2)
+    supported = sum(s >= fit_options.min_support for s in fit.support.values())
+    reason = ""
+    if fit.mean_support < options.min_mean_support:
+        reason = f"mean edge support {fit.mean_support:.2f} < {options.min_mean_support}"
+    elif supported < options.min_supported_frames:
+        reason = f"only {supported} frames with edge support"
+    elif np.linalg.norm(fit.delta[3:]) > options.max_correction_m or \
+            np.degrees(np.linalg.norm(fit.delta[:3])) > options.max_correction_deg:
+        reason = "correction beyond the plausible range"
+    return replace(fit, accepted=not reason, reason=reason)
+
+
+def _coarse_candidates(
+    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame],
+    images: Mapping[int, np.ndarray], options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
+) -> list[np.ndarray]:
+    """Common corrections `(6,)` of the best common image shifts, best first (zero included)."""
+    ds = max(int(options.coarse_downsample), 1)
+    step = options.coarse_step_px
+    r = int(np.ceil(options.coarse_radius_px / step))
+    grid = np.arange(-r, r + 1) * step
+    sx, sy = np.meshgrid(grid, grid)
+    shifts = np.stack([sx.ravel(), sy.ravel()], axis=1)
+    total = np.zeros(len(shifts))
+    depths = []
+    wide = replace(eo, image_margin_px=-options.coarse_radius_px)
+    for fr in data:
+        vis = _visible(wireframe, camera, fr.prior, raycaster, wide, options.coarse_samples)
+        if len(vis.points) < fo.min_samples:
+            continue
+        uv, z = fr.prior.project(camera, vis.points)
+        ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
+        if ok.sum() < fo.min_samples:
+            continue
+        depths.append(float(np.median(z[ok])))
+        nrm = _image_normals(camera, fr.prior, vis, uv)[ok]
+        uv, w = uv[ok], vis.weight[ok]
+        img = images[fr.index]
+        small = cv2.resize(img, (img.shape[1] // ds, img.shape[0] // ds), interpolation=cv2.INTER_AREA)
+        small = cv2.GaussianBlur(small.astype(np.float32), (0, 0), options.coarse_sigma_px)
+        gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        ref = float(np.percentile(np.hypot(gx, gy), 95)) or 1e-6
+        # positions (downsampled pixels) of every sample under every shift: (S, N)
+        pu = ((uv[None, :, 0] + shifts[:, None, 0]) / ds - 0.5 + 0.5 / ds).astype(np.float32)
+        pv = ((uv[None, :, 1] + shifts[:, None, 1]) / ds - 0.5 + 0.5 / ds).astype(np.float32)
+        g = cv2.remap(np.dstack([gx, gy]), pu, pv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=0)
+        along = np.abs(g[..., 0] * nrm[None, :, 0] + g[..., 1] * nrm[None, :, 1])
+        across = np.abs(g[..., 0] * nrm[None, :, 1] - g[..., 1] * nrm[None, :, 0])
+        s = np.clip((along - across) / ref, -1.0, 1.0)
+        total += (s * w[None]).sum(axis=1) / max(float(w.sum()), 1e-9)
+    out = [np.zeros(6)]
+    if not depths:
+        return out
+    dmed = float(np.median(depths))
+    score = total.reshape(sx.shape)
+    sep = int(np.ceil(options.candidate_separation_px / step))
+    work = score.copy()
+    centre = np.array([camera.cx, camera.cy])
+    ref_pose = data[len(data) // 2].prior
+    for _ in range(options.candidates):
+        iy, ix = np.unravel_index(int(np.argmax(work)), work.shape)
+        if not np.isfinite(work[iy, ix]):
+            break
+        work[max(iy - sep, 0): iy + sep + 1, max(ix - sep, 0): ix + sep + 1] = -np.inf
+        shift = np.array([grid[ix], grid[iy]])
+        if not shift.any():
+            continue
+        moved = shift_pose(camera, ref_pose, centre, shift, dmed, fo)
+        out.append(pose_delta(ref_pose, moved))
+    return out
+
+
+def _fine(
+    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame], delta0: np.ndarray,
+    prior_info: np.ndarray, iterations: int, options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
+    radius_start: float | None = None,
+) -> JointFit:
+    """Gauss-Newton of the common correction from `delta0` over the frames of `data`."""
+    delta = np.asarray(delta0, dtype=np.float64).copy()
+    zero6 = np.zeros((6, 6))
+    none = np.zeros((0, 2))
+    r0 = options.radius_start_px if radius_start is None else radius_start
+    vis: dict[int, VisibleWireframe] = {}
+    H = prior_info.copy()
+    for it in range(iterations):
+        poses = {fr.index: apply_delta(fr.prior, delta) for fr in data}
+        if it % 4 == 0:
+            vis = {fr.index: _visible(wireframe, camera, poses[fr.index], raycaster, eo, fo.max_samples)
+                   for fr in data}
+        R_e = max(fo.edge_radius_min_px, r0 * options.radius_decay**it)
+        fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
+        H = prior_info.copy()
+        g = -prior_info @ delta
+        for fr in data:
+            v = vis[fr.index]
+            if len(v.points) < fo.min_samples:
+                continue
+            Hi, gi, *_ = _normal_equations(camera, poses[fr.index], v, fr.feats, none, R_e,
+                                           fo.point_radius_min_px, poses[fr.index], zero6, fo_it)
+            H += Hi
+            g += gi
+        try:
+            d = np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        d[:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(d[:3]), 1e-12))
+        d[3:] *= min(1.0, 2.0 / max(np.linalg.norm(d[3:]), 1e-12))
+        delta = delta + d
+        small = np.linalg.norm(d[:3]) < 5e-5 and np.linalg.norm(d[3:]) < 5e-3
+        if R_e <= fo.edge_radius_min_px + 1e-9 and small:
+            break
+    support: dict[int, float] = {}
+    chi2, n = 0.0, 0
+    for fr in data:
+        pose = apply_delta(fr.prior, delta)
+        v = _visible(wireframe, camera, pose, raycaster, eo, fo.max_samples)
+        if len(v.points) < fo.min_samples:
+            continue
+        _, _, w, off, found, *_ = _normal_equations(camera, pose, v, fr.feats, none, fo.edge_radius_min_px,
+                                                    fo.point_radius_min_px, pose, zero6, fo)
+        near = found & (np.abs(off) <= fo.support_px)
+        support[fr.index] = float(np.sum(v.weight * near) / max(float(np.sum(v.weight)), 1e-12))
+        inl = w > 0
+        chi2 += float(np.sum(off[inl] ** 2))
+        n += int(inl.sum())
+    s0 = max(1.0, chi2 / max(n - 6, 1) / fo.sigma_edge_px**2)
+    try:
+        cov = np.linalg.inv(H) * s0
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.nan)
+    mean = float(np.mean(list(support.values()))) if support else 0.0
+    return JointFit(delta=delta, covariance=cov, support=support, mean_support=mean)
