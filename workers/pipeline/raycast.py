@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -116,6 +117,19 @@ class RayHits:
         return self.polygon >= 0
 
 
+def open3d_scene(mesh: SceneMesh) -> Any:
+    """An Open3D `RaycastingScene` over `mesh.vertices` (the mesh's local frame)."""
+    import open3d as o3d  # imported here: heavy, and only the processes that cast need it
+
+    scene = o3d.t.geometry.RaycastingScene()
+    if len(mesh.triangles):
+        scene.add_triangles(
+            o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
+            o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
+        )
+    return scene
+
+
 class RayCaster:
     """Ray queries against a `SceneMesh` (Open3D `RaycastingScene`, multi-threaded)."""
 
@@ -124,13 +138,30 @@ class RayCaster:
 
         self.mesh = mesh
         self._o3d = o3d
-        self._scene = o3d.t.geometry.RaycastingScene()
-        if len(mesh.triangles):
-            self._scene.add_triangles(
-                o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
-                o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
-            )
+        self._scene = open3d_scene(mesh)
         self._empty = len(mesh.triangles) == 0
+
+    def cast_local(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cast rays given directly in the mesh's local frame, for hot loops that build them in
+        float32 themselves.
+
+        Args:
+            rays: `(N, 6)` float32 `[ox, oy, oz, dx, dy, dz]`, origins relative to `mesh.origin`.
+
+        Returns:
+            `(t (N,) float32, polygon (N,) int32)`: distance in units of the direction's length
+            (inf on a miss) and the index into `polygon_ids` (-1 on a miss).
+        """
+        n = len(rays)
+        if self._empty or n == 0:
+            return np.full(n, np.inf, np.float32), np.full(n, -1, np.int32)
+        ans = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, np.float32)))
+        t = ans["t_hit"].numpy()
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        polygon = np.full(n, -1, np.int32)
+        hit = np.isfinite(t)
+        polygon[hit] = self.mesh.triangle_polygon[prim[hit]]
+        return t, polygon
 
     def _rays(self, origins: np.ndarray, directions: np.ndarray) -> object:
         o = np.asarray(origins, dtype=np.float64) - self.mesh.origin

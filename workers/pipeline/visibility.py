@@ -328,7 +328,7 @@ def buried_texels(
 
 
 class OcclusionScene:
-    """Everything the per-texel occlusion test needs for one unit: an Open3D scene over the
+    """Everything the per-texel occlusion test needs for one unit: the ray caster over the
     scene mesh (building and occluders), the camera's pixel rays, and the scene index and plane
     group of each polygon. Rays are built in float32 in the mesh's local frame (no float64
     round trip). Not picklable; build one per unit."""
@@ -336,24 +336,15 @@ class OcclusionScene:
     def __init__(
         self, raycaster: RayCaster, camera: Camera, options: VisibilityOptions = VisibilityOptions()
     ) -> None:
-        import open3d as o3d  # heavy: only processes that cast need it
-
         mesh = raycaster.mesh
         self.mesh = mesh
-        self._o3d = o3d
-        self._scene = o3d.t.geometry.RaycastingScene()
-        if len(mesh.triangles):
-            self._scene.add_triangles(
-                o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
-                o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
-            )
+        self._raycaster = raycaster
         self.step = max(1, options.buffer_step_px)
         full = pixel_rays(camera)
         self._rays = {1: full, self.step: np.ascontiguousarray(full[:: self.step, :: self.step])}
         self.options = options
         self.polygon_index = mesh.polygon_index()
         self.polygon_group = np.append(plane_groups(mesh, options), -1).astype(np.intp)
-        self._tri_polygon = np.append(mesh.triangle_polygon.astype(np.int32), np.int32(-1))
 
     def buffer(self, pose: Pose, uv: np.ndarray, step: int = 1, margin: int = 0) -> HitBuffer:
         """Cast the grid of every `step`-th pixel around `uv (N, 2)` (the 2x2 grid elements around
@@ -370,14 +361,11 @@ class OcclusionScene:
         pix = np.flatnonzero(need)
         t = np.full(H * W, np.inf, np.float32)
         poly = np.full(H * W, -1, np.int32)
-        if len(self.mesh.triangles) and len(pix):
+        if len(pix):
             rays = np.empty((len(pix), 6), np.float32)
             rays[:, :3] = (pose.center - self.mesh.origin).astype(np.float32)
             rays[:, 3:] = grid.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
-            ans = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
-            t[pix] = ans["t_hit"].numpy()
-            prim = ans["primitive_ids"].numpy().astype(np.int64)
-            poly[pix] = self._tri_polygon[np.minimum(prim, len(self._tri_polygon) - 1)]
+            t[pix], poly[pix] = self._raycaster.cast_local(rays)
         return HitBuffer(width=W, height=H, step=step, t=t, polygon=poly)
 
     def visible(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]]) -> list[np.ndarray]:

@@ -24,7 +24,7 @@ import numpy as np
 
 from workers.pipeline.camera import Camera
 from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import SceneMesh
+from workers.pipeline.raycast import SceneMesh, open3d_scene
 from workers.pipeline.sequence import Radiometry
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.thermal import ThermalScene
@@ -144,12 +144,7 @@ class Renderer:
         if self._scene is None:
             import open3d as o3d  # heavy: only processes that render import it
 
-            scene = o3d.t.geometry.RaycastingScene()
-            if len(self.mesh.triangles):
-                scene.add_triangles(
-                    o3d.core.Tensor(np.ascontiguousarray(self.mesh.vertices, dtype=np.float32)),
-                    o3d.core.Tensor(np.ascontiguousarray(self.mesh.triangles, dtype=np.uint32)),
-                )
+            scene = open3d_scene(self.mesh)
             self._scene = (o3d, scene)
         return self._scene
 
