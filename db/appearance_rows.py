@@ -12,13 +12,14 @@ writes the shortest repr, PostgreSQL's numeric keeps the digits).
 from __future__ import annotations
 
 import uuid
+from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from psycopg.types.json import Jsonb
-from sqlalchemy import Connection
+from sqlalchemy import Connection, text
 
 from workers.pipeline.citymodel import (
     Appearance,
@@ -300,3 +301,21 @@ def surface_data_from_rows(sd: Mapping[str, Any], params: Sequence[Mapping[str, 
         orientation=_tuple(sd["orientation"]),  # type: ignore[arg-type]
         prefer_world_file=sd["prefer_world_file"],
     )
+
+
+def load_texture_params(
+    conn: Connection, surface_data_ids: Sequence[int]
+) -> dict[int, list[Mapping[str, Any]]]:
+    """`texture_param` rows of the given surface data, grouped by surface data id, in their
+    original order (the input for `surface_data_from_rows`)."""
+    params: dict[int, list[Mapping[str, Any]]] = defaultdict(list)
+    rows = conn.execute(
+        text(
+            "SELECT surface_data_id, target_gml_id, ring_ids, tex_coords FROM texture_param "
+            "WHERE surface_data_id = ANY(:s) ORDER BY surface_data_id, ordinal"
+        ),
+        {"s": list(surface_data_ids)},
+    ).mappings()
+    for tp in rows:
+        params[tp["surface_data_id"]].append(tp)
+    return params

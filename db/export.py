@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import Connection, Engine, text
 
-from db.appearance_rows import surface_data_from_rows
+from db.appearance_rows import load_texture_params, surface_data_from_rows
 from db.citygml.writer import write_citygml
 from db.errors import CityDBError, NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
@@ -238,19 +238,7 @@ def _assemble(
         .mappings()
         .all()
     )
-    params: dict[int, list[Mapping[str, Any]]] = defaultdict(list)
-    for tp in (
-        conn.execute(
-            text(
-                "SELECT surface_data_id, target_gml_id, ring_ids, tex_coords FROM texture_param "
-                "WHERE surface_data_id = ANY(:s) ORDER BY surface_data_id, ordinal"
-            ),
-            {"s": [sd["id"] for sd in sds]},
-        )
-        .mappings()
-        .all()
-    ):
-        params[tp["surface_data_id"]].append(tp)
+    params = load_texture_params(conn, [sd["id"] for sd in sds])
     wanted: dict[int, list[str]] = defaultdict(list)
     by_app: dict[int, list[Any]] = defaultdict(list)
     for sd in sds:

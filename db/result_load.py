@@ -11,15 +11,13 @@ in-process run. Raises `NotFoundError` when nothing was stored for that job and 
 from __future__ import annotations
 
 import uuid
-from collections import defaultdict
-from typing import Any
 
 import cv2
 import numpy as np
 from sqlalchemy import text
 from sqlalchemy.orm import Session
 
-from db.appearance_rows import surface_data_from_rows
+from db.appearance_rows import load_texture_params, surface_data_from_rows
 from db.errors import NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
 from workers.pipeline.citymodel import Appearance
@@ -64,19 +62,7 @@ def load_building_result(
         .mappings()
         .all()
     )
-    params: dict[int, list[Any]] = defaultdict(list)
-    for tp in (
-        conn.execute(
-            text(
-                "SELECT surface_data_id, target_gml_id, ring_ids, tex_coords FROM texture_param "
-                "WHERE surface_data_id = ANY(:s) ORDER BY surface_data_id, ordinal"
-            ),
-            {"s": [sd["id"] for sd in sds]},
-        )
-        .mappings()
-        .all()
-    ):
-        params[tp["surface_data_id"]].append(tp)
+    params = load_texture_params(conn, [sd["id"] for sd in sds])
     data = tuple(surface_data_from_rows(sd, params.get(sd["id"], [])) for sd in sds)
     appearance = Appearance(theme=app["theme"], surface_data=data, id=app["gml_id"]) if data else None
     tiles = tuple(
