@@ -22,6 +22,14 @@ Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
    common correction (a rotation plus a translation across the optical axis, split by their
    a-priori sizes) is applied to every prior and pass 1 is centred on it. Else each frame runs
    its own coarse search (kept only when distinct, too).
+2b. **joint fine adjustment** (`coregister_joint`, when the joint coarse search finds no
+   distinct minimum, as on close-range drives): ONE common correction of all frames plus small
+   per-frame deviations, adjusted from the stacked edge observations of every frame against the
+   scene wireframe (an oriented-gradient search over common image shifts first). When accepted,
+   pass 1 is centred on each frame's jointly corrected pose, and a frame still at its prior
+   after steps 3 and 4 takes that pose with status `"refined"` when it lies in time between
+   frames whose edge support confirms the correction and the common correction's uncertainty
+   projected onto the building is ≤ `joint_max_sigma_px`.
 3. sequence level: corrections `δ = (ω_cam, dC_world)` of consecutive frames are strongly
    correlated (constant boresight error, slow GNSS drift). Frames that converged (found the
    building, whether or not alone they determine the pose) give each frame a **prediction**: the
@@ -136,8 +144,13 @@ class CoregisterOptions:
     # accepted, pass 1 is centred on it, and a frame still at its prior takes the jointly
     # corrected pose with status "refined" when its own edge support there reaches
     # `fit.min_support` and the joint uncertainty projected onto the building is
-    # ≤ `inherit_max_sigma_px`
+    # ≤ `joint_max_sigma_px` (the common part of the error is then known; what a frame alone
+    # cannot observe of its own white noise stays, e.g. the height of a frame that sees only
+    # vertical corners)
     joint_fine: bool = True
+    joint_max_sigma_px: float = 3.0
+    # after an accepted joint correction, refit every frame (passes 1, 2) from it
+    joint_refit: bool = True
     joint: JointOptions = field(default_factory=JointOptions)
     # per-frame deviation of the correction from its neighbours' (white noise, vibration)
     frame_sigma_deg: float = 0.3
@@ -256,11 +269,14 @@ def refine_building(
                        options.joint, options.fit, options.edges, options.features)
         if jf.accepted:
             joint = jf
-            starts = {i: apply_delta(prior[i], jf.delta) for i in frames}
+            starts = {i: apply_delta(prior[i], jf.frame_delta.get(i, jf.delta)) for i in frames}
             fo = replace(fo, coarse_radius_px=0.0)
             coarse = False
     t = {i: float(times[i]) if times is not None else float(i) for i in frames}
-    out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
+    if joint is not None and not options.joint_refit:
+        out = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
+    else:
+        out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
     rest = [i for i in frames if out[i].status == "prior"]
     # the scene is tried when it showed a common signal (joint coarse) or the building some frames
     hope = common is not None or len(rest) < len(frames)
@@ -271,10 +287,13 @@ def refine_building(
                         options)
         out.update({i: r for i, r in scene.items() if r.status == "refined"})
     if joint is not None:
+        # the common correction holds for every frame between frames that confirm it in time
+        ok_t = [t[i] for i in frames if joint.support.get(i, 0.0) >= options.fit.min_support]
         for i in frames:
-            if out[i].status == "refined" or joint.support.get(i, 0.0) < options.fit.min_support:
+            inside = bool(ok_t) and min(ok_t) <= t[i] <= max(ok_t)
+            if out[i].status == "refined" or not inside:
                 continue
-            if _sigma_px(camera, starts[i], wf.vertices, joint.covariance) <= options.inherit_max_sigma_px:
+            if _sigma_px(camera, starts[i], wf.vertices, joint.covariance) <= options.joint_max_sigma_px:
                 out[i] = RefinedPose(i, starts[i], "refined", float("nan"), 0)
     return out
 

@@ -79,10 +79,14 @@ class JointOptions:
     # acceptance: mean edge support over the frames (share of samples with an image edge within
     # the frame fit's `support_px`), frames that must reach the frame fit's `min_support`, and
     # the largest plausible correction
-    min_mean_support: float = 0.5
+    min_mean_support: float = 0.45
     min_supported_frames: int = 3
     max_correction_m: float = 9.0
     max_correction_deg: float = 8.0
+    # per-frame deviation of a frame's correction from the common one (white position noise,
+    # vibration): standard deviations of `ε_i`
+    frame_sigma_deg: float = 0.3
+    frame_sigma_m: float = 0.3
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,12 +95,15 @@ class JointFit:
 
     Attributes:
         delta: `(6,)` common correction `(ω_cam [rad], dC_world [m])` of every prior.
-        covariance: `(6, 6)` of `delta` (a-posteriori variance factor applied, ≥ 1).
+        covariance: `(6, 6)` of a correction common to all frames from the stacked observations
+            (no per-frame deviations; a-posteriori variance factor applied, ≥ 1): how well the
+            frames together determine the constant part of the error.
         support: `{frame: share of visible edge samples with an image edge within support_px}`
             at the corrected pose (frames that took part).
         mean_support: mean of `support`.
         accepted: the acceptance tests passed.
         reason: why not ("" when accepted).
+        frame_delta: `{frame: (6,)}` correction `δ + ε_i` of each frame that took part.
     """
 
     delta: np.ndarray
@@ -105,6 +112,7 @@ class JointFit:
     mean_support: float = 0.0
     accepted: bool = False
     reason: str = ""
+    frame_delta: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -242,44 +250,61 @@ def _fine(
     prior_info: np.ndarray, iterations: int, options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
     radius_start: float | None = None,
 ) -> JointFit:
-    """Gauss-Newton of the common correction from `delta0` over the frames of `data`."""
+    """Gauss-Newton of the common correction `δ` and the per-frame deviations `ε_i` (information
+    `F` from `frame_sigma_*`) from `delta0` over the frames of `data`: frame i is corrected by
+    `x_i = δ + ε_i`; the `ε_i` are eliminated (Schur complement) so every step solves 6 × 6
+    systems only."""
     delta = np.asarray(delta0, dtype=np.float64).copy()
+    x = {fr.index: delta.copy() for fr in data}
+    F = np.diag([np.radians(options.frame_sigma_deg) ** -2] * 3 + [options.frame_sigma_m**-2] * 3)
     zero6 = np.zeros((6, 6))
     none = np.zeros((0, 2))
     r0 = options.radius_start_px if radius_start is None else radius_start
     vis: dict[int, VisibleWireframe] = {}
-    H = prior_info.copy()
+    S = prior_info.copy()
+    Hc = prior_info.copy()
     for it in range(iterations):
-        poses = {fr.index: apply_delta(fr.prior, delta) for fr in data}
+        poses = {fr.index: apply_delta(fr.prior, x[fr.index]) for fr in data}
         if it % 4 == 0:
             vis = {fr.index: _visible(wireframe, camera, poses[fr.index], raycaster, eo, fo.max_samples)
                    for fr in data}
         R_e = max(fo.edge_radius_min_px, r0 * options.radius_decay**it)
         fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
-        H = prior_info.copy()
-        g = -prior_info @ delta
+        S = prior_info.copy()
+        Hc = prior_info.copy()
+        b = -prior_info @ delta
+        parts = {}
         for fr in data:
             v = vis[fr.index]
-            if len(v.points) < fo.min_samples:
-                continue
-            Hi, gi, *_ = _normal_equations(camera, poses[fr.index], v, fr.feats, none, R_e,
-                                           fo.point_radius_min_px, poses[fr.index], zero6, fo_it)
-            H += Hi
-            g += gi
+            Hi, gi = zero6, np.zeros(6)
+            if len(v.points) >= fo.min_samples:
+                Hi, gi, *_ = _normal_equations(camera, poses[fr.index], v, fr.feats, none, R_e,
+                                               fo.point_radius_min_px, poses[fr.index], zero6, fo_it)
+            Hc += Hi
+            B = np.linalg.inv(Hi + F)
+            c = gi - F @ (x[fr.index] - delta)
+            parts[fr.index] = (B, c)
+            S += F - F @ B @ F
+            b += F @ (x[fr.index] - delta) + F @ B @ c
         try:
-            d = np.linalg.solve(H, g)
+            dd = np.linalg.solve(S, b)
         except np.linalg.LinAlgError:
             break
-        d[:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(d[:3]), 1e-12))
-        d[3:] *= min(1.0, 2.0 / max(np.linalg.norm(d[3:]), 1e-12))
-        delta = delta + d
-        small = np.linalg.norm(d[:3]) < 5e-5 and np.linalg.norm(d[3:]) < 5e-3
+        dd = _bounded(dd)
+        delta = delta + dd
+        big = 0.0
+        for fr in data:
+            B, c = parts[fr.index]
+            dx = _bounded(B @ (c + F @ dd))
+            x[fr.index] = x[fr.index] + dx
+            big = max(big, float(np.linalg.norm(dx[3:])))
+        small = np.linalg.norm(dd[:3]) < 5e-5 and np.linalg.norm(dd[3:]) < 5e-3 and big < 5e-3
         if R_e <= fo.edge_radius_min_px + 1e-9 and small:
             break
     support: dict[int, float] = {}
     chi2, n = 0.0, 0
     for fr in data:
-        pose = apply_delta(fr.prior, delta)
+        pose = apply_delta(fr.prior, x[fr.index])
         v = _visible(wireframe, camera, pose, raycaster, eo, fo.max_samples)
         if len(v.points) < fo.min_samples:
             continue
@@ -292,8 +317,16 @@ def _fine(
         n += int(inl.sum())
     s0 = max(1.0, chi2 / max(n - 6, 1) / fo.sigma_edge_px**2)
     try:
-        cov = np.linalg.inv(H) * s0
+        cov = np.linalg.inv(Hc) * s0
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.nan)
     mean = float(np.mean(list(support.values()))) if support else 0.0
-    return JointFit(delta=delta, covariance=cov, support=support, mean_support=mean)
+    return JointFit(delta=delta, covariance=cov, support=support, mean_support=mean, frame_delta=x)
+
+
+def _bounded(d: np.ndarray) -> np.ndarray:
+    """A Gauss-Newton step `(6,)` bounded to 3° and 2 m (linearisation)."""
+    d = d.copy()
+    d[:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(d[:3]), 1e-12))
+    d[3:] *= min(1.0, 2.0 / max(np.linalg.norm(d[3:]), 1e-12))
+    return d
