@@ -18,8 +18,11 @@ Two stages:
    for common image shifts on a grid (frames downsampled and smoothed; the score of a sample is
    the image gradient component along the projected edge's normal minus the one across it,
    normalised per frame): correspondence-free and insensitive to the window rows the model does
-   not contain (a plain distance transform is not). The best local maxima are candidates;
-2. **fine**: Gauss-Newton of the six common parameters from every frame's edge-normal distances
+   not contain (a plain distance transform is not). The best local maxima are candidates; so
+   are the best common world translations (a 3-D grid, refined on a finer one): at close range
+   a position bias shifts near and far facades differently, which no common image shift explains;
+2. **fine**: Gauss-Newton of the six common parameters (plus per-frame deviations `ε_i` with
+   a-priori σ `frame_sigma_*`, eliminated by a Schur complement) from every frame's edge-normal distances
    (1-D gradient search along each projected edge sample, `coregister_frame._normal_equations`,
    Tukey weights) with a shrinking search radius, the prior a weighted observation. Each
    candidate is run on a few frames; the one with the highest edge support is refined on all.
@@ -63,18 +66,27 @@ class JointOptions:
     # ... common image shifts up to this radius, on a grid of this step (full-resolution pixels)
     coarse_radius_px: float = 200.0
     coarse_step_px: float = 8.0
-    # ... at most this many samples per frame, this many candidates (local maxima at least
-    # `candidate_separation_px` apart)
-    coarse_samples: int = 200
+    # ... at most this many samples per frame and frames (evenly spread), this many
+    # candidates (local maxima at least `candidate_separation_px` apart)
+    coarse_samples: int = 150
+    coarse_frames: int = 16
     candidates: int = 3
     candidate_separation_px: float = 40.0
+    # ... and common world translations up to this many metres per axis on a grid of this step
+    # (frames downsampled and smoothed by these), the best `translation_candidates` refined on a
+    # grid of a quarter step
+    translation_max_m: float = 6.0
+    translation_step_m: float = 1.0
+    translation_downsample: int = 8
+    translation_sigma_px: float = 4.0
+    translation_candidates: int = 3
     # fine: edge search radius at the start (shrinks by `radius_decay` per iteration to the
     # frame fit's minimum), iterations; candidates are compared on `verify_frames` frames with
     # `verify_iterations` iterations
     radius_start_px: float = 48.0
     radius_decay: float = 0.8
     iterations: int = 14
-    verify_frames: int = 6
+    verify_frames: int = 8
     verify_iterations: int = 10
     # acceptance: mean edge support over the frames (share of samples with an image edge within
     # the frame fit's `support_px`), frames that must reach the frame fit's `min_support`, and
@@ -183,21 +195,58 @@ def joint_fit(
     return replace(fit, accepted=not reason, reason=reason)
 
 
+def _gradient(img: np.ndarray, ds: int, sigma: float) -> tuple[np.ndarray, float]:
+    """Image `(H, W)` downsampled by `ds` and smoothed by `sigma` (downsampled pixels) ->
+    gradients `(h, w, 2)` and their robust scale (95th percentile of the magnitude)."""
+    small = cv2.resize(img, (img.shape[1] // ds, img.shape[0] // ds), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small.astype(np.float32), (0, 0), sigma)
+    gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    return np.dstack([gx, gy]), float(np.percentile(np.hypot(gx, gy), 95)) or 1e-6
+
+
+def _score(
+    grad: tuple[np.ndarray, float], ds: int, uv: np.ndarray, nrm: np.ndarray, w: np.ndarray
+) -> np.ndarray:
+    """Oriented-gradient score `(K,)` of candidate sample positions `uv` `(K, N, 2)` (full-resolution
+    pixels) with edge normals `nrm` `(N, 2)` and weights `w` `(N,)`: weighted mean over samples of
+    (gradient along the normal − across it) / scale, clipped to ±1; 0 outside the frame."""
+    g, ref = grad
+    pu = np.nan_to_num((uv[..., 0] + 0.5) / ds - 0.5, nan=-1e4).astype(np.float32)
+    pv = np.nan_to_num((uv[..., 1] + 0.5) / ds - 0.5, nan=-1e4).astype(np.float32)
+    gg = cv2.remap(g, pu, pv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    along = np.abs(gg[..., 0] * nrm[None, :, 0] + gg[..., 1] * nrm[None, :, 1])
+    across = np.abs(gg[..., 0] * nrm[None, :, 1] - gg[..., 1] * nrm[None, :, 0])
+    sc = np.clip((along - across) / ref, -1.0, 1.0)
+    return (sc * w[None]).sum(axis=1) / max(float(w.sum()), 1e-9)
+
+
+def _peaks(score: np.ndarray, n: int, sep: int) -> list[tuple[int, ...]]:
+    """Indices of the `n` best local maxima of `score` (any dimension), `sep` cells apart."""
+    work = score.copy()
+    out = []
+    for _ in range(n):
+        k = np.unravel_index(int(np.argmax(work)), work.shape)
+        if not np.isfinite(work[k]):
+            break
+        out.append(tuple(int(x) for x in k))
+        work[tuple(slice(max(x - sep, 0), x + sep + 1) for x in k)] = -np.inf
+    return out
+
+
 def _coarse_candidates(
     camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame],
     images: Mapping[int, np.ndarray], options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
 ) -> list[np.ndarray]:
-    """Common corrections `(6,)` of the best common image shifts, best first (zero included)."""
+    """Common corrections `(6,)`, zero first: the best common image shifts (a rotation and a
+    translation across the optical axis, `shift_pose`), then the best common world translations
+    (a grid, refined on a finer one): at close range a position bias shifts near and far facades
+    differently, which no common image shift explains."""
     ds = max(int(options.coarse_downsample), 1)
-    step = options.coarse_step_px
-    r = int(np.ceil(options.coarse_radius_px / step))
-    grid = np.arange(-r, r + 1) * step
-    sx, sy = np.meshgrid(grid, grid)
-    shifts = np.stack([sx.ravel(), sy.ravel()], axis=1)
-    total = np.zeros(len(shifts))
-    depths = []
     wide = replace(eo, image_margin_px=-options.coarse_radius_px)
-    for fr in data:
+    samples = []
+    pick = np.unique(np.linspace(0, len(data) - 1, min(len(data), options.coarse_frames)).round().astype(int))
+    for fr in (data[k] for k in pick):
         vis = _visible(wireframe, camera, fr.prior, raycaster, wide, options.coarse_samples)
         if len(vis.points) < fo.min_samples:
             continue
@@ -205,43 +254,56 @@ def _coarse_candidates(
         ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
         if ok.sum() < fo.min_samples:
             continue
-        depths.append(float(np.median(z[ok])))
         nrm = _image_normals(camera, fr.prior, vis, uv)[ok]
-        uv, w = uv[ok], vis.weight[ok]
-        img = images[fr.index]
-        small = cv2.resize(img, (img.shape[1] // ds, img.shape[0] // ds), interpolation=cv2.INTER_AREA)
-        small = cv2.GaussianBlur(small.astype(np.float32), (0, 0), options.coarse_sigma_px)
-        gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-        gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        ref = float(np.percentile(np.hypot(gx, gy), 95)) or 1e-6
-        # positions (downsampled pixels) of every sample under every shift: (S, N)
-        pu = ((uv[None, :, 0] + shifts[:, None, 0]) / ds - 0.5 + 0.5 / ds).astype(np.float32)
-        pv = ((uv[None, :, 1] + shifts[:, None, 1]) / ds - 0.5 + 0.5 / ds).astype(np.float32)
-        g = cv2.remap(np.dstack([gx, gy]), pu, pv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                      borderValue=0)
-        along = np.abs(g[..., 0] * nrm[None, :, 0] + g[..., 1] * nrm[None, :, 1])
-        across = np.abs(g[..., 0] * nrm[None, :, 1] - g[..., 1] * nrm[None, :, 0])
-        s = np.clip((along - across) / ref, -1.0, 1.0)
-        total += (s * w[None]).sum(axis=1) / max(float(w.sum()), 1e-9)
+        samples.append((fr, vis.points[ok], uv[ok], nrm, vis.weight[ok], float(np.median(z[ok]))))
     out = [np.zeros(6)]
-    if not depths:
+    if not samples:
         return out
-    dmed = float(np.median(depths))
-    score = total.reshape(sx.shape)
-    sep = int(np.ceil(options.candidate_separation_px / step))
-    work = score.copy()
+    # common image shifts
+    step = options.coarse_step_px
+    r = int(np.ceil(options.coarse_radius_px / step))
+    grid = np.arange(-r, r + 1) * step
+    sx, sy = np.meshgrid(grid, grid)
+    shifts = np.stack([sx.ravel(), sy.ravel()], axis=1)
+    total = np.zeros(len(shifts))
+    grads = {}
+    for fr, _, uv, nrm, w, _ in samples:
+        grads[fr.index] = _gradient(images[fr.index], ds, options.coarse_sigma_px)
+        total += _score(grads[fr.index], ds, uv[None] + shifts[:, None], nrm, w)
+    dmed = float(np.median([smp[5] for smp in samples]))
     centre = np.array([camera.cx, camera.cy])
     ref_pose = data[len(data) // 2].prior
-    for _ in range(options.candidates):
-        iy, ix = np.unravel_index(int(np.argmax(work)), work.shape)
-        if not np.isfinite(work[iy, ix]):
-            break
-        work[max(iy - sep, 0): iy + sep + 1, max(ix - sep, 0): ix + sep + 1] = -np.inf
+    sep = int(np.ceil(options.candidate_separation_px / step))
+    for iy, ix in _peaks(total.reshape(sx.shape), options.candidates, sep):
         shift = np.array([grid[ix], grid[iy]])
-        if not shift.any():
-            continue
-        moved = shift_pose(camera, ref_pose, centre, shift, dmed, fo)
-        out.append(pose_delta(ref_pose, moved))
+        if shift.any():
+            out.append(pose_delta(ref_pose, shift_pose(camera, ref_pose, centre, shift, dmed, fo)))
+    # common world translations: coarse grid on strongly smoothed frames, then a finer one
+    levels = ((options.translation_max_m, options.translation_step_m, options.translation_downsample,
+               options.translation_sigma_px),
+              (options.translation_step_m, options.translation_step_m / 4, ds, options.coarse_sigma_px))
+    coarse_grads = {fr.index: _gradient(images[fr.index], levels[0][2], levels[0][3]) for fr, *_ in samples}
+    centres = [np.zeros(3)]
+    for lev, (half, st, lds, _) in enumerate(levels):
+        found = []
+        for c0 in centres:
+            ax = np.arange(-half, half + 1e-9, st)
+            gx_, gy_, gz_ = np.meshgrid(ax, ax, ax, indexing="ij")
+            dcs = c0 + np.stack([gx_.ravel(), gy_.ravel(), gz_.ravel()], axis=1)
+            tot = np.zeros(len(dcs))
+            for fr, X, _, nrm, w, _ in samples:
+                Rt = fr.prior.R_world_from_cam.T
+                Xc = (X - fr.prior.center) @ Rt.T
+                uvk = camera.project(Xc[None] - (dcs @ Rt.T)[:, None])
+                grad = coarse_grads[fr.index] if lev == 0 else grads[fr.index]
+                tot += _score(grad, lds, uvk, nrm, w)
+            shape = gx_.shape
+            n = options.translation_candidates if lev == 0 else 1
+            found += [(float(tot.reshape(shape)[k]), dcs[np.ravel_multi_index(k, shape)])
+                      for k in _peaks(tot.reshape(shape), n, 2)]
+        found.sort(key=lambda t: -t[0])
+        centres = [c for _, c in found]
+    out += [np.concatenate([np.zeros(3), c]) for c in centres if np.any(c)]
     return out
 
 
