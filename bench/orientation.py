@@ -21,7 +21,6 @@ Usage: `python bench/orientation.py [--frames 40] [--buildings 3] [--seed 1] [--
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 import tempfile
@@ -36,6 +35,8 @@ from workers.pipeline.coregister import CoregisterOptions, refine_building
 from workers.pipeline.coregister_frame import pose_delta
 from workers.pipeline.georef import prior_poses
 from workers.pipeline.model_edges import building_wireframe, visible_wireframe
+from workers.pipeline.orientation_quality import edge_points
+from workers.pipeline.orientation_quality import reprojection_rms as quality_rms
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
 from workers.pipeline.synth import ErrorOptions, SynthOptions, procedural_block, synthesize
@@ -51,27 +52,9 @@ class MemorySource:
         return self.frames[index]
 
 
-def edge_points(building, spacing_m: float = 0.5) -> np.ndarray:
-    out = []
-    for poly in building.iter_polygons():
-        for ring in poly.rings:
-            c = ring.coords
-            for a, b in itertools.pairwise(c):
-                k = max(int(np.ceil(np.linalg.norm(b - a) / spacing_m)), 1)
-                out.append(a + np.linspace(0, 1, k, endpoint=False)[:, None] * (b - a))
-    return np.concatenate(out)
-
-
 def reprojection_rms(camera, pts: np.ndarray, pose: Pose, truth: Pose) -> float:
     """RMS px of `pts` (seen in the frame by the true pose) projected with `pose` vs `truth`."""
-    b, zb = truth.project(camera, pts)
-    ok = (zb > 1.0) & camera.in_image(b)
-    if ok.sum() < 4:
-        return float("nan")
-    a, za = pose.project(camera, pts[ok])
-    d = np.sum((a - b[ok]) ** 2, axis=1)
-    d = np.where((za > 0.1) & np.isfinite(d), d, 1e6)
-    return float(np.sqrt(np.mean(d)))
+    return quality_rms(camera, pts, pose, truth, min_points=4)
 
 
 def offset_pose(pose: Pose, d_m: float, d_deg: float) -> Pose:

@@ -7,7 +7,6 @@ ground truth; coordinates in a local metric CRS (x east, y north, z up).
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -15,6 +14,8 @@ import numpy as np
 
 from workers.pipeline.camera import Camera
 from workers.pipeline.citymodel import Building, Polygon, Ring
+from workers.pipeline.orientation_quality import edge_points
+from workers.pipeline.orientation_quality import reprojection_rms as quality_rms
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster, build_scene_mesh
 
@@ -163,27 +164,7 @@ def drive_poses(start: np.ndarray, heading: np.ndarray, n: int, step_m: float = 
                     np.asarray(start, float) + k * step_m * f + view) for k in range(n)]
 
 
-def edge_points(building: Building, spacing_m: float = 0.5) -> np.ndarray:
-    """Points `(N, 3)` every `spacing_m` along all polygon edges of `building` (vertices included)."""
-    out = []
-    for poly in building.iter_polygons():
-        for ring in poly.rings:
-            c = ring.coords
-            for a, b in itertools.pairwise(c):
-                k = max(int(np.ceil(np.linalg.norm(b - a) / spacing_m)), 1)
-                out.append(a + np.linspace(0, 1, k, endpoint=False)[:, None] * (b - a))
-    return np.concatenate(out)
-
-
 def reprojection_rms(camera: Camera, building: Building, pose: Pose, truth: Pose) -> float:
     """RMS pixel distance, `pose` vs `truth`, of points along the building's edges that the true
     pose sees inside the frame and in front (NaN when there are none)."""
-    pts = edge_points(building)
-    b, zb = truth.project(camera, pts)
-    ok = (zb > 1.0) & camera.in_image(b)
-    if not ok.any():
-        return float("nan")
-    a, za = pose.project(camera, pts[ok])
-    d = np.sum((a - b[ok]) ** 2, axis=1)
-    d = np.where((za > 0.1) & np.isfinite(d), d, 1e6)
-    return float(np.sqrt(np.mean(d)))
+    return quality_rms(camera, edge_points(building), pose, truth)

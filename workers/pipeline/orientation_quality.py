@@ -12,9 +12,42 @@ image positions of model corners (projected with the true pose). Out: shares in 
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import numpy as np
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.citymodel import Building
+from workers.pipeline.pose import Pose
+
+
+def edge_points(building: Building, spacing_m: float = 0.5) -> np.ndarray:
+    """Points `(N, 3)` (model CRS) every `spacing_m` metres along all polygon edges of
+    `building`, parts included (vertices included)."""
+    out = []
+    for poly in building.iter_polygons():
+        for ring in poly.rings:
+            for a, b in itertools.pairwise(ring.coords):
+                k = max(int(np.ceil(np.linalg.norm(b - a) / spacing_m)), 1)
+                out.append(a + np.linspace(0, 1, k, endpoint=False)[:, None] * (b - a))
+    return np.concatenate(out)
+
+
+def reprojection_rms(
+    camera: Camera, points: np.ndarray, pose: Pose, truth: Pose, min_points: int = 1
+) -> float:
+    """RMS pixel distance between `points (N, 3)` projected with `pose` and with `truth`, over the
+    points the true pose sees in front and inside the frame; NaN when fewer than `min_points`.
+    A point behind the camera of `pose` counts as 1000 px off."""
+    b, zb = truth.project(camera, points)
+    ok = (zb > 1.0) & camera.in_image(b)
+    if ok.sum() < max(min_points, 1):
+        return float("nan")
+    a, za = pose.project(camera, points[ok])
+    d = np.sum((a - b[ok]) ** 2, axis=1)
+    d = np.where((za > 0.1) & np.isfinite(d), d, 1e6)
+    return float(np.sqrt(np.mean(d)))
 
 
 def efficiency(error_prior: Sequence[float], error_refined: Sequence[float]) -> float:
