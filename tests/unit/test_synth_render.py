@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import shapely
 
+from db.citygml.reader import read_model
 from workers.pipeline.camera import Camera
 from workers.pipeline.geometry import triangulate
 from workers.pipeline.pose import Pose
@@ -127,8 +128,7 @@ def test_box_silhouette_subpixel_edges(box):
 
 
 def test_real_lod2_building_silhouette(shared_data):
-    db_reader = pytest.importorskip("db.citygml.reader")
-    _, blds = db_reader.read_model(shared_data / "bavaria-1-building-citygml2-lod2.gml")
+    _, blds = read_model(shared_data / "bavaria-1-building-citygml2-lod2.gml")
     mesh = build_scene_mesh(blds)
     thermal = ThermalScene(blds, mesh.polygon_ids, seed=2, options=FLAT)
     lo, hi = blds[0].bounds()
