@@ -273,7 +273,9 @@ def refine_building(
             fo = replace(fo, coarse_radius_px=0.0)
             coarse = False
     t = {i: float(times[i]) if times is not None else float(i) for i in frames}
-    if joint is not None and not options.joint_refit:
+    # frames related by tie points inside the joint adjustment are not refitted one by one (a
+    # single close-range frame does not determine its pose; the tie points did)
+    if joint is not None and (not options.joint_refit or joint.tie_pairs > 0):
         out = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
     else:
         out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
