@@ -213,10 +213,12 @@ def test_synthetic_drive_attitude_offset_is_corrected_jointly(synth_drive):
     assert np.mean(after < 2.0) >= 0.8
 
 
-def test_synthetic_drive_with_default_errors_removes_the_common_error(synth_drive):
-    # default drive errors: the common part (GNSS bias, boresight) is removed jointly; what one
-    # frame cannot observe of its own white position noise remains (e.g. height from vertical
-    # corners only), so the bar here is relative
+def test_synthetic_drive_with_default_errors_is_refined_with_tie_points(synth_drive):
+    # default drive errors: the common part (GNSS bias, boresight) is removed jointly, and the
+    # per-frame white noise (which one frame's vertical corners cannot observe) by the tie points
+    # of consecutive frames transferred over the model inside the joint adjustment (without them:
+    # median 6.8 px, 20 % below 2 px; with them 1.5 px, 65 %). What remains is mostly a common
+    # tilt/height of a chain of frames that sees no horizontal model edge.
     from workers.pipeline.georef import prior_poses
 
     res, frames = synth_drive[True]
@@ -225,5 +227,6 @@ def test_synthetic_drive_with_default_errors_removes_the_common_error(synth_driv
     before, after, status = (np.array(x) for x in zip(*pairs, strict=True))
     refined = status == "refined"
     assert np.mean(after < before) >= 0.85
-    assert np.median(after) < np.median(before) / 4
+    assert np.median(after) < 3.0
+    assert np.mean(after < 2.0) >= 0.45
     assert not np.any(refined & (after > before))
