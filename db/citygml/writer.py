@@ -46,7 +46,7 @@ from db.citygml.names import (
     gen_ns,
     to_ncname,
 )
-from workers.pipeline.citymodel import Appearance, Building, Polygon
+from workers.pipeline.citymodel import SURFACE_CLASSES, Appearance, Building, Polygon
 
 __all__ = ["NSMAP", "envelope_of", "write_citygml"]
 
@@ -76,14 +76,7 @@ _WATER = frozenset(
         "temporarilyAboveAndBelowWaterSurface",
     }
 )
-_BOUNDARY_CLASSES = (
-    "WallSurface",
-    "RoofSurface",
-    "GroundSurface",
-    "ClosureSurface",
-    "OuterCeilingSurface",
-    "OuterFloorSurface",
-)
+_BOUNDARY_CLASSES = frozenset(SURFACE_CLASSES) - {"unclassified"}
 
 
 def _sub(parent: etree._Element, tag: str, text: str | None = None) -> etree._Element:
