@@ -31,6 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from workers.pipeline.calibrate import apply_calibration, calibrate_sequence, calibrated_accuracy
 from workers.pipeline.coregister import CoregisterOptions, refine_building
 from workers.pipeline.coregister_frame import pose_delta
 from workers.pipeline.georef import prior_poses
@@ -75,14 +76,26 @@ def scene(platform: str, frames: int, buildings: int, seed: int, errors: bool):
     return res, imgs
 
 
-def run(res, imgs, priors: list[Pose], options: CoregisterOptions, quality: bool = False) -> dict:
-    """Refine every cluster building over every frame that sees it; errors per pair."""
+def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bool = True) -> dict:
+    """Calibrate the sequence (as `citytherm run` does), then refine every cluster building over
+    every frame that sees it; errors per pair."""
     cam = res.manifest.camera
     caster = RayCaster(res.mesh)
     times = {i: f.time for i, f in enumerate(res.manifest.frames)}
     src = MemorySource(imgs)
     pairs = []
     per_frame_ms = []
+    accuracy = res.manifest.accuracy
+    calib: dict = {"run": False}
+    original = list(priors)
+    if calibrate:
+        t0 = time.perf_counter()
+        frames = list(range(len(imgs)))
+        cal = calibrate_sequence(cam, caster, frames, src, dict(enumerate(priors)), times, accuracy)
+        calib = {"run": True, **cal.to_dict(),
+                 "ms_per_frame": round(1000 * (time.perf_counter() - t0) / len(frames), 1)}
+        priors = apply_calibration(priors, [times[i] for i in frames], cal)
+        accuracy = calibrated_accuracy(cal, prior=accuracy)
     for b in res.buildings:
         if b.id not in res.truth.cluster:
             continue
@@ -97,20 +110,21 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions, quality: bool
             i: visible_wireframe(wf, cam, res.truth.poses[i], caster, options.edges).n_edges for i in seen
         }
         t0 = time.perf_counter()
-        out = refine_building(cam, b, caster, seen, src, prior, res.manifest.accuracy, options, times)
+        out = refine_building(cam, b, caster, seen, src, prior, accuracy, options, times)
         per_frame_ms.append(1000 * (time.perf_counter() - t0) / len(seen))
         for i in seen:
             T = res.truth.poses[i]
             d = pose_delta(T, out[i].pose)
             pairs.append({
-                "before": reprojection_rms(cam, pts, prior[i], T),
+                "before": reprojection_rms(cam, pts, original[i], T),
+                "calibrated": reprojection_rms(cam, pts, prior[i], T),
                 "after": reprojection_rms(cam, pts, out[i].pose, T),
                 "status": out[i].status,
                 "pos_err": float(np.linalg.norm(d[3:])),
                 "rot_err_deg": float(np.degrees(np.linalg.norm(d[:3]))),
                 "visible_edges": edges_seen[i],
             })
-    return {"pairs": pairs, "per_frame_ms": per_frame_ms}
+    return {"pairs": pairs, "per_frame_ms": per_frame_ms, "calibration": calib}
 
 
 def _r(x, refined) -> float | None:
@@ -132,6 +146,7 @@ def summary(r: dict) -> dict:
         "share_below_1px": round(float(np.mean(after < 1.0)), 3),
         "share_refined": round(float(np.mean(refined)), 3),
         "median_reprojection_px_prior": round(float(np.median(before)), 2),
+        "median_reprojection_px_calibrated": round(float(np.median([x["calibrated"] for x in p])), 2),
         "median_reprojection_px_after": round(float(np.median(after)), 2),
         "refined_share_below_1px": _r(np.mean(after[refined] < 1.0), refined),
         "refined_worse_than_prior": int(np.sum(refined & (after > before))),
@@ -147,6 +162,7 @@ def summary(r: dict) -> dict:
         out["efficiency_of_those"] = round(float(np.mean(after[seen2] < before[seen2])), 3)
     if r["per_frame_ms"]:
         out["ms_per_frame_and_building_median"] = round(float(np.median(r["per_frame_ms"])), 1)
+    out["calibration"] = r["calibration"]
     return out
 
 

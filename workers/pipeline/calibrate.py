@@ -1,0 +1,421 @@
+"""Sequence calibration: the systematic part of the GNSS/INS pose error, once per sequence.
+
+In: `Camera`, a `RayCaster` over the buildings the sequence sees (its mesh gives the scene
+wireframe), the frames in recording order with their times (seconds), a `FrameSource`, the
+GNSS/INS prior camera pose per frame (world = model CRS), the manifest's `Accuracy`, options.
+Out: `SequenceCalibration`: a boresight correction `ω` (camera frame, radians), a GNSS position
+offset `b` (world, metres), a lever-arm correction `l` (camera frame, metres) and a camera-to-INS
+time delay `τ` (seconds), their covariance, acceptance; `apply_calibration` gives the calibrated
+prior of every frame.
+
+Why (Kolecki, Iwaszczuk & Stilla 2010; DESIGN.md "calibrate ... once per sequence"): the
+boresight misalignment, the lever arm the manifest does not know, the GNSS bias and the time
+delay are constant over a sequence, while a single close-range frame of a drive (vertical
+building corners only) does not determine its pose, and a single building seen along a straight
+street cannot tell a lever arm from a GNSS offset. Over the whole sequence and all its buildings,
+with the headings changing at every turn, all of them are observable.
+
+Model: frame i's correction `δ_i = (ω_i, dC_i)` (`coregister_geometry.apply_delta`) is
+
+    ω_i  = ω − τ · Ω_i            (Ω_i: angular rate of the prior, camera frame, rad/s)
+    dC_i = b + R_i · l − τ · v_i  (v_i: velocity of the prior centre, world, m/s)
+    x_i  = A_i θ + ε_i,           θ = (ω, b, l, τ) (10,)
+
+(exposure at `time − τ`, linearised), with per-frame deviations `ε_i` (white GNSS noise,
+vibration) of a-priori σ `frame_sigma_*`, eliminated by a Schur complement.
+
+Method:
+1. up to `max_frames` frames spread over the sequence whose prior view shows scene edges;
+2. start: the common correction `(ω, b)` of those frames from `coregister_joint.joint_fit`
+   against the scene wireframe (oriented-gradient search over common image shifts and common
+   world translations, then a robust adjustment), `l = 0`, `τ = 0`;
+3. Gauss-Newton of θ and the `ε_i` from every frame's edge-normal distances (1-D gradient search
+   along each projected edge sample, Tukey weights; `coregister_frame._normal_equations`) with a
+   shrinking search radius; θ has a weighted prior of zero (`Accuracy` for `ω` and `b`,
+   `lever_arm_sigma_m`, `time_delay_sigma_s`);
+4. accepted when the mean edge support of the frames reaches `min_mean_support`, at least
+   `min_supported_frames` frames are supported, and the correction is plausible; otherwise the
+   priors are kept (`accepted` False, `reason` says why).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.coregister_frame import FrameFitOptions, _normal_equations, _visible, frame_box
+from workers.pipeline.coregister_geometry import apply_delta, so3_log
+from workers.pipeline.coregister_joint import JointOptions, joint_fit
+from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
+from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, WireframeError, mesh_wireframe
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+from workers.pipeline.sequence import Accuracy, FrameSource
+
+__all__ = [
+    "CalibrationOptions",
+    "SequenceCalibration",
+    "apply_calibration",
+    "calibrate_sequence",
+    "calibrated_accuracy",
+    "frame_motion",
+]
+
+N_PARAMS = 10
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Parameters of the sequence calibration (metres, degrees, seconds, pixels)."""
+
+    # at most this many frames (evenly spread over the sequence) take part
+    max_frames: int = 40
+    # the start: `joint_fit` over the frames (tie points off: the frames are far apart in time)
+    joint: JointOptions = field(default_factory=lambda: JointOptions(ties=False, max_frames=40,
+                                                                      coarse_frames=20))
+    edges: EdgeOptions = field(default_factory=EdgeOptions)
+    fit: FrameFitOptions = field(default_factory=FrameFitOptions)
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    # a-priori σ when the manifest has no `accuracy`, and a floor (the accuracy does not cover the
+    # boresight misalignment): position offset (m), boresight (deg)
+    default_position_sigma_m: float = 3.0
+    default_attitude_sigma_deg: float = 3.0
+    position_sigma_floor_m: float = 3.0
+    attitude_sigma_floor_deg: float = 3.0
+    # a-priori σ of the lever-arm correction (m) and of the time delay (s); 0 fixes the term
+    lever_arm_sigma_m: float = 1.0
+    time_delay_sigma_s: float = 0.1
+    # per-frame deviations from the systematic model (white noise, vibration)
+    frame_sigma_deg: float = 0.3
+    frame_sigma_m: float = 0.3
+    # Gauss-Newton: edge search radius at the start (shrinks by `radius_decay`), iterations
+    radius_start_px: float = 12.0
+    radius_decay: float = 0.8
+    iterations: int = 12
+    # acceptance (edge support as in `coregister_joint`)
+    min_mean_support: float = 0.45
+    min_supported_frames: int = 3
+    max_correction_m: float = 12.0
+    max_correction_deg: float = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class SequenceCalibration:
+    """The systematic correction of a sequence's priors (see the module docstring).
+
+    Attributes:
+        theta: `(10,)` = boresight correction `ω` (camera frame, rad), GNSS offset `b` (world, m),
+            lever-arm correction `l` (camera frame, m), time delay `τ` (s).
+        covariance: `(10, 10)` of `theta` (a-posteriori variance factor applied, ≥ 1).
+        accepted: the acceptance tests passed (else `theta` must not be applied).
+        reason: why not ("" when accepted).
+        frames: frames that took part.
+        support: `{frame: share of visible edge samples with an image edge within support_px}`.
+        mean_support: mean of `support`.
+    """
+
+    theta: np.ndarray
+    covariance: np.ndarray = field(default_factory=lambda: np.full((N_PARAMS, N_PARAMS), np.nan))
+    accepted: bool = False
+    reason: str = ""
+    frames: tuple[int, ...] = ()
+    support: dict[int, float] = field(default_factory=dict)
+    mean_support: float = 0.0
+
+    @property
+    def boresight_rad(self) -> np.ndarray:
+        """`(3,)` boresight correction, camera frame, radians."""
+        return self.theta[0:3]
+
+    @property
+    def offset_m(self) -> np.ndarray:
+        """`(3,)` GNSS position offset, world metres."""
+        return self.theta[3:6]
+
+    @property
+    def lever_arm_m(self) -> np.ndarray:
+        """`(3,)` lever-arm correction, camera frame, metres."""
+        return self.theta[6:9]
+
+    @property
+    def time_delay_s(self) -> float:
+        """Camera-to-INS delay τ (exposure at `time − τ`), seconds."""
+        return float(self.theta[9])
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready summary (degrees, metres, seconds; standard deviations alongside)."""
+        sd = np.sqrt(np.clip(np.diag(self.covariance), 0, None))
+        return {
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "frames": len(self.frames),
+            "mean_edge_support": round(self.mean_support, 3),
+            "boresight_correction_deg": np.degrees(self.boresight_rad).round(4).tolist(),
+            "offset_m": self.offset_m.round(4).tolist(),
+            "lever_arm_correction_cam_m": self.lever_arm_m.round(4).tolist(),
+            "time_delay_s": round(self.time_delay_s, 5),
+            "sigma": {
+                "boresight_deg": np.degrees(sd[0:3]).round(4).tolist(),
+                "offset_m": sd[3:6].round(4).tolist(),
+                "lever_arm_m": sd[6:9].round(4).tolist(),
+                "time_delay_s": round(float(sd[9]), 5),
+            },
+        }
+
+
+def frame_motion(poses: Sequence[Pose], times: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity `(N, 3)` of the centres (world, m/s) and angular rate `(N, 3)` (camera frame of
+    each pose, rad/s) of a pose sequence in recording order, by central differences (one-sided
+    at the ends; zero where two stamps coincide or for a single pose)."""
+    n = len(poses)
+    v = np.zeros((n, 3))
+    w = np.zeros((n, 3))
+    t = np.asarray(times, dtype=np.float64)
+    for i in range(n):
+        a, b = max(i - 1, 0), min(i + 1, n - 1)
+        dt = t[b] - t[a]
+        if b == a or dt <= 0:
+            continue
+        v[i] = (poses[b].center - poses[a].center) / dt
+        Ri = poses[i].R_world_from_cam
+        # rate in the camera frame of pose i: R_a^T R_b = exp(Ω dt) expressed at i
+        w_a = so3_log(poses[a].R_world_from_cam.T @ poses[b].R_world_from_cam) / dt
+        w[i] = Ri.T @ poses[a].R_world_from_cam @ w_a
+    return v, w
+
+
+def design(pose: Pose, velocity: np.ndarray, rate: np.ndarray) -> np.ndarray:
+    """`A_i` `(6, 10)`: frame correction `δ_i = A_i θ` (see the module docstring)."""
+    A = np.zeros((6, N_PARAMS))
+    A[0:3, 0:3] = np.eye(3)
+    A[0:3, 9] = -rate
+    A[3:6, 3:6] = np.eye(3)
+    A[3:6, 6:9] = pose.R_world_from_cam
+    A[3:6, 9] = -velocity
+    return A
+
+
+def apply_calibration(priors: Sequence[Pose], times: Sequence[float], calibration: SequenceCalibration) -> list[Pose]:
+    """Calibrated prior of every frame (recording order, `times` in seconds); the priors unchanged
+    when the calibration was not accepted."""
+    if not calibration.accepted:
+        return list(priors)
+    v, w = frame_motion(priors, times)
+    return [apply_delta(p, design(p, v[i], w[i]) @ calibration.theta) for i, p in enumerate(priors)]
+
+
+def calibrated_accuracy(calibration: SequenceCalibration, options: CalibrationOptions = CalibrationOptions(),
+                        prior: Accuracy | None = None) -> Accuracy | None:
+    """A-priori σ of a calibrated prior for the building units: the per-frame deviation σ and the
+    calibration's own uncertainty (the manifest's accuracy when the calibration was rejected)."""
+    if not calibration.accepted:
+        return prior
+    var = np.diag(calibration.covariance)
+    pos = np.sqrt(options.frame_sigma_m**2 + var[3:6] + np.sum(var[6:9]) / 3.0)
+    att = np.degrees(np.sqrt(np.radians(options.frame_sigma_deg) ** 2 + var[0:3]))
+    return Accuracy(position_m=pos, attitude_deg=att)
+
+
+def _prior_information(accuracy: Accuracy | None, options: CalibrationOptions) -> np.ndarray:
+    """`(10, 10)` information of the zero prior on θ."""
+    if accuracy is None:
+        sp = np.full(3, options.default_position_sigma_m)
+        sa = np.full(3, options.default_attitude_sigma_deg)
+    else:
+        sp = np.asarray(accuracy.position_m, dtype=np.float64).reshape(3)
+        sa = np.asarray(accuracy.attitude_deg, dtype=np.float64).reshape(3)
+    sp = np.maximum(sp, options.position_sigma_floor_m)
+    sa = np.maximum(sa, options.attitude_sigma_floor_deg)
+    d = np.concatenate([np.radians(sa) ** -2, sp**-2,
+                        [options.lever_arm_sigma_m**-2 if options.lever_arm_sigma_m > 0 else 1e12] * 3,
+                        [options.time_delay_sigma_s**-2 if options.time_delay_sigma_s > 0 else 1e12]])
+    return np.diag(d)
+
+
+@dataclass(frozen=True, eq=False)
+class _Frame:
+    index: int
+    prior: Pose
+    A: np.ndarray
+    feats: ImageFeatures
+
+
+def calibrate_sequence(
+    camera: Camera,
+    raycaster: RayCaster,
+    frames: Sequence[int],
+    frame_source: FrameSource,
+    priors: Mapping[int, Pose],
+    times: Mapping[int, float],
+    accuracy: Accuracy | None,
+    options: CalibrationOptions = CalibrationOptions(),
+    wireframe: Wireframe | None = None,
+) -> SequenceCalibration:
+    """Calibrate the sequence (see the module docstring).
+
+    Args:
+        camera: interior orientation.
+        raycaster: over the buildings the sequence sees (hidden-edge removal); its mesh gives the
+            scene wireframe unless `wireframe` is given.
+        frames: all frame indices of the sequence, in recording order.
+        frame_source: `load(i) -> (H, W)` float32 physical values.
+        priors: GNSS/INS camera pose per frame (world = model CRS).
+        times: frame time per frame, seconds.
+        accuracy: a-priori σ of the GNSS/INS solution (None: option defaults).
+        options: all parameters.
+        wireframe: the scene wireframe (default: `mesh_wireframe` of the ray caster's mesh).
+    """
+    frames = list(frames)
+    zero = SequenceCalibration(theta=np.zeros(N_PARAMS))
+    if wireframe is None:
+        mesh = getattr(raycaster, "mesh", None)
+        if mesh is None:
+            return replace(zero, reason="no scene mesh")
+        try:
+            wireframe = mesh_wireframe(mesh, options.edges)
+        except WireframeError as e:
+            return replace(zero, reason=f"no scene wireframe: {e}")
+    if len(frames) < options.min_supported_frames:
+        return replace(zero, reason="too few frames")
+    ordered = [priors[i] for i in frames]
+    v, w = frame_motion(ordered, [times[i] for i in frames])
+    A = {i: design(priors[i], v[k], w[k]) for k, i in enumerate(frames)}
+    # frames whose prior view shows scene edges, spread over the sequence
+    fo = options.fit
+    margin = options.joint.coarse_radius_px + options.joint.radius_start_px + fo.roi_margin_px
+    usable = []
+    for i in frames:
+        vis = _visible(wireframe, camera, priors[i], raycaster, options.edges, 64)
+        if len(vis.points) >= fo.min_samples:
+            usable.append(i)
+    if len(usable) < options.min_supported_frames:
+        return replace(zero, reason="too few frames see the model")
+    pick = [usable[k] for k in np.unique(np.linspace(0, len(usable) - 1, min(len(usable), options.max_frames))
+                                         .round().astype(int))]
+    images = {i: frame_source.load(i) for i in pick}
+    P = _prior_information(accuracy, options)
+    start = joint_fit(camera, wireframe, raycaster, pick, images, {i: priors[i] for i in pick}, P[:6, :6],
+                      replace(options.joint, max_frames=options.max_frames), fo, options.edges, options.features)
+    if not start.accepted:
+        return replace(zero, reason=f"no common correction: {start.reason}", frames=tuple(pick))
+    data = []
+    for i in pick:
+        vis = _visible(wireframe, camera, apply_delta(priors[i], start.delta), raycaster, options.edges,
+                       fo.max_samples)
+        if len(vis.points) < fo.min_samples:
+            continue
+        roi = frame_box(camera, apply_delta(priors[i], start.delta), vis, options.radius_start_px + fo.roi_margin_px)
+        if roi is None:
+            continue
+        try:
+            feats = extract_features(images[i], options.features, roi, points=False)
+        except FeatureError:
+            continue
+        data.append(_Frame(i, priors[i], A[i], feats))
+    theta0 = np.zeros(N_PARAMS)
+    theta0[:6] = start.delta
+    cal = _adjust(camera, wireframe, raycaster, data, theta0, P, options)
+    return _accept(replace(cal, frames=tuple(f.index for f in data)), options)
+
+
+def _adjust(
+    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame], theta0: np.ndarray,
+    P: np.ndarray, options: CalibrationOptions,
+) -> SequenceCalibration:
+    """Gauss-Newton of θ and the per-frame deviations `ε_i` (Schur complement; module docstring)."""
+    fo = options.fit
+    theta = theta0.copy()
+    eps = {f.index: np.zeros(6) for f in data}
+    F = np.diag([np.radians(options.frame_sigma_deg) ** -2] * 3 + [options.frame_sigma_m**-2] * 3)
+    zero6 = np.zeros((6, 6))
+    none = np.zeros((0, 2))
+    vis: dict[int, VisibleWireframe] = {}
+    S = P.copy()
+    for it in range(options.iterations):
+        poses = {f.index: apply_delta(f.prior, f.A @ theta + eps[f.index]) for f in data}
+        if it % 4 == 0:
+            vis = {f.index: _visible(wireframe, camera, poses[f.index], raycaster, options.edges, fo.max_samples)
+                   for f in data}
+        R_e = max(fo.edge_radius_min_px, options.radius_start_px * options.radius_decay**it)
+        fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
+        S = P.copy()
+        rhs = -P @ theta
+        parts = {}
+        for f in data:
+            Hi, gi = zero6, np.zeros(6)
+            if len(vis[f.index].points) >= fo.min_samples:
+                Hi, gi, *_ = _normal_equations(camera, poses[f.index], vis[f.index], f.feats, none, R_e,
+                                               fo.point_radius_min_px, poses[f.index], zero6, fo_it)
+            B = np.linalg.inv(Hi + F)
+            c = gi - F @ eps[f.index]
+            HB = Hi @ B
+            S += f.A.T @ (Hi - HB @ Hi) @ f.A
+            rhs += f.A.T @ (gi - HB @ c)
+            parts[f.index] = (B, c, Hi)
+        try:
+            dt = np.linalg.solve(S, rhs)
+        except np.linalg.LinAlgError:
+            break
+        dt = _bounded(dt)
+        theta = theta + dt
+        big = 0.0
+        for f in data:
+            B, c, Hi = parts[f.index]
+            de = B @ (c - Hi @ f.A @ dt)
+            eps[f.index] = eps[f.index] + de
+            big = max(big, float(np.linalg.norm(de[3:])))
+        small = np.linalg.norm(dt[:3]) < 5e-5 and np.linalg.norm(dt[3:9]) < 5e-3 and abs(dt[9]) < 1e-3
+        if R_e <= fo.edge_radius_min_px + 1e-9 and small and big < 5e-3:
+            break
+    support: dict[int, float] = {}
+    chi2, n = 0.0, 0
+    for f in data:
+        pose = apply_delta(f.prior, f.A @ theta + eps[f.index])
+        v = _visible(wireframe, camera, pose, raycaster, options.edges, fo.max_samples)
+        if len(v.points) < fo.min_samples:
+            continue
+        _, _, wt, off, found, *_ = _normal_equations(camera, pose, v, f.feats, none, fo.edge_radius_min_px,
+                                                     fo.point_radius_min_px, pose, zero6, fo)
+        near = found & (np.abs(off) <= fo.support_px)
+        support[f.index] = float(np.sum(v.weight * near) / max(float(np.sum(v.weight)), 1e-12))
+        inl = wt > 0
+        chi2 += float(np.sum(off[inl] ** 2))
+        n += int(inl.sum())
+    s0 = max(1.0, chi2 / max(n - N_PARAMS, 1) / fo.sigma_edge_px**2)
+    try:
+        cov = np.linalg.inv(S) * s0
+    except np.linalg.LinAlgError:
+        cov = np.full((N_PARAMS, N_PARAMS), np.nan)
+    mean = float(np.mean(list(support.values()))) if support else 0.0
+    return SequenceCalibration(theta=theta, covariance=cov, support=support, mean_support=mean)
+
+
+def _bounded(d: np.ndarray) -> np.ndarray:
+    """A Gauss-Newton step `(10,)` bounded to 3°, 2 m (offset and lever arm each) and 0.05 s."""
+    d = d.copy()
+    d[0:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(d[0:3]), 1e-12))
+    d[3:6] *= min(1.0, 2.0 / max(np.linalg.norm(d[3:6]), 1e-12))
+    d[6:9] *= min(1.0, 2.0 / max(np.linalg.norm(d[6:9]), 1e-12))
+    d[9] = float(np.clip(d[9], -0.05, 0.05))
+    return d
+
+
+def _accept(cal: SequenceCalibration, options: CalibrationOptions) -> SequenceCalibration:
+    """Acceptance tests (module docstring)."""
+    fo = options.fit
+    supported = sum(s >= fo.min_support for s in cal.support.values())
+    th = cal.theta
+    reason = ""
+    if cal.mean_support < options.min_mean_support:
+        reason = f"mean edge support {cal.mean_support:.2f} < {options.min_mean_support}"
+    elif supported < options.min_supported_frames:
+        reason = f"only {supported} frames with edge support"
+    elif not np.all(np.isfinite(cal.covariance)):
+        reason = "calibration not determined"
+    elif np.linalg.norm(th[3:6]) + np.linalg.norm(th[6:9]) > options.max_correction_m or \
+            np.degrees(np.linalg.norm(th[0:3])) > options.max_correction_deg:
+        reason = "correction beyond the plausible range"
+    return replace(cal, accepted=not reason, reason=reason)
