@@ -133,9 +133,14 @@ def write_textured_gml(
 
 
 def orientation_document(
-    manifest: SequenceManifest, priors: Sequence[Pose], results: Sequence[BuildingResult]
+    manifest: SequenceManifest,
+    priors: Sequence[Pose],
+    results: Sequence[BuildingResult],
+    mounting: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The `orientation.json` document: prior pose of every frame, refined poses per building."""
+    """The `orientation.json` document: prior pose of every frame (the manifest-only prior),
+    refined poses per building, and `mounting`: the estimated `boresight_deg`, `lever_arm_m`
+    and `time_delay_s` when given (a calibration ran), else the manifest's values and delay 0."""
     refined: dict[int, list[dict[str, Any]]] = {}
     for r in results:
         for fp in r.poses:
@@ -149,13 +154,15 @@ def orientation_document(
                 }
             )
     m = manifest.mounting
-    return {
-        "format": ORIENTATION_FORMAT,
-        "mounting": {
+    if mounting is None:
+        mounting = {
             "boresight_deg": np.asarray(m.boresight_deg, dtype=float).tolist(),
             "lever_arm_m": np.asarray(m.lever_arm_m, dtype=float).tolist(),
             "time_delay_s": 0.0,
-        },
+        }
+    return {
+        "format": ORIENTATION_FORMAT,
+        "mounting": dict(mounting),
         "frames": [
             {"index": f.index, "file": f.file, "prior": pose.to_dict(), "refined": refined.get(f.index, [])}
             for f, pose in zip(manifest.frames, priors, strict=True)
@@ -220,6 +227,8 @@ def write_results_folder(
     priors: Sequence[Pose],
     srs_name: str | None,
     theme: str,
+    mounting: Mapping[str, Any] | None = None,
+    calibration: Mapping[str, Any] | None = None,
     resolution_px_per_m: float,
     display: bool = True,
     frames_of: Mapping[str, int] | None = None,
@@ -235,6 +244,9 @@ def write_results_folder(
     Tiles with pixels are written; tiles with an empty `dn` are taken as already written (the
     display copies are then made from the files). `frames_of` gives the frames per building for
     the report, `job` extra report fields; `timings_s` gets the `write` stage time.
+    `priors` are the manifest-only priors; `mounting` the estimated mounting for
+    `orientation.json` (None: the manifest's, delay 0) and `calibration` the report's
+    `calibration` block (None: `{"run": false}`).
     """
     t0 = started if started is not None else time.perf_counter()
     out = Path(out_dir)
@@ -256,7 +268,7 @@ def write_results_folder(
     by_id = {r.building_id: r for r in results}
     write_textured_gml(out / "textured.gml", buildings, by_id, srs_name, display)
     step(2, 4)
-    write_json(out / "orientation.json", orientation_document(manifest, priors, results))
+    write_json(out / "orientation.json", orientation_document(manifest, priors, results, mounting))
     step(3, 4)
     timings = timings_s if timings_s is not None else {}
     timings["write"] = time.perf_counter() - t0 + write_time_offset_s
@@ -274,6 +286,7 @@ def write_results_folder(
         "buildings_processed": len(results),
         "buildings_textured": sum(1 for r in results if r.appearance is not None),
         **dict(job or {}),
+        "calibration": dict(calibration) if calibration is not None else {"run": False},
         "timings_s": dict(timings),
         "unit_stage_timings_s": stage_units,
         "buildings": [

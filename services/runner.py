@@ -4,7 +4,10 @@ In: a CityGML file, a sequence package, an output folder and `RunOptions`.
 Out: the results folder of `spec/results-format.md` and a `RunSummary`.
 
 Stages: ingest (open the package, georeference the prior poses, stream the model keeping the
-buildings within reach of the cameras), plan (which frames see which building:
+buildings within reach of the cameras), calibrate (with refinement: boresight, GNSS offset, lever
+arm and time delay once per sequence against all those buildings, `calibrate.calibrate_sequence`;
+an accepted calibration gives the units calibrated priors and a-priori accuracy, while
+`orientation.json` keeps the manifest-only priors), plan (which frames see which building:
 `units.plan_units`), units (one `run_building_unit` per building, in a forkserver process pool
 with `workers > 1`, each worker with `cpu_count // workers` library threads; a unit that raises
 is reported, not fatal), write (`results_files.write_results_folder`: tiles, display copies,
@@ -22,12 +25,14 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from db.citygml.reader import iter_buildings, read_header
 from db.sequence_package import SequencePackage, open_package
+from services.calibration_stage import calibrate_priors, calibration_documents
 from services.results_files import write_results_folder, write_tile
 from workers.pipeline.citymodel import Building, ModelHeader
 from workers.pipeline.georef import prior_poses
@@ -37,9 +42,12 @@ from workers.pipeline.sequence import Radiometry
 from workers.pipeline.texel import TexelOptions
 from workers.pipeline.units import BuildingUnit, PlanOptions, UnitOptions, plan_units, run_building_unit
 
+if TYPE_CHECKING:  # the orientation modules are optional: imported where the stage runs
+    from workers.pipeline.calibrate import SequenceCalibration
+
 #: progress callback: (stage, done, total); called with done == 0 when a stage starts.
 Progress = Callable[[str, int, int], None]
-STAGES = ("ingest", "plan", "units", "write")
+STAGES = ("ingest", "calibrate", "plan", "units", "write")
 
 
 class RunError(ValueError):
@@ -61,6 +69,8 @@ class RunOptions:
         buildings: ids of the top-level buildings to texture (None: all the sequence sees).
         workers: processes for the building units (1: in this process).
         refine: refine poses per building before texturing (needs the orientation module).
+        calibrate: with `refine`, calibrate the sequence (mounting, GNSS offset, time delay)
+            before the units, which then refine from the calibrated priors.
         display: also write the 8-bit colour-mapped `<theme>-display` appearance.
         unit: per-stage options of the units (its texel resolution, theme and refine flag are
             overridden by the fields above).
@@ -72,6 +82,7 @@ class RunOptions:
     buildings: tuple[str, ...] | None = None
     workers: int = 1
     refine: bool = False
+    calibrate: bool = True
     display: bool = True
     unit: UnitOptions = field(default_factory=UnitOptions)
     plan: PlanOptions = field(default_factory=PlanOptions)
@@ -96,6 +107,7 @@ class RunSummary:
     timings_s: dict[str, float]
     refine: bool
     warning: str | None = None
+    calibration: dict[str, Any] | None = None
 
     @property
     def texels_observed(self) -> int:
@@ -228,6 +240,8 @@ class JobPlan:
     units: list[BuildingUnit]
     n_model_buildings: int = 0
     warning: str | None = None
+    calibration: SequenceCalibration | None = None
+    calibration_s: float | None = None
 
 
 def plan_job(
@@ -237,8 +251,10 @@ def plan_job(
     progress: Progress | None = None,
     timings: dict[str, float] | None = None,
 ) -> JobPlan:
-    """Ingest (read the model and the package, georeference the prior poses) and plan (one
-    building unit per building the sequence sees). Stage wall times go into `timings`."""
+    """Ingest (read the model and the package, georeference the prior poses), calibrate (with
+    `refine` and `calibrate`: the units get the calibrated priors, `JobPlan.priors` stays the
+    manifest-only prior) and plan (one building unit per building the sequence sees). Stage
+    wall times go into `timings`."""
     report: Progress = progress or (lambda stage, done, total: None)
     timings = timings if timings is not None else {}
     if options.workers < 1:
@@ -269,17 +285,26 @@ def plan_job(
         report("ingest", 3, 3)
         timings["ingest"] = time.perf_counter() - t0
 
+        # the units refine from the calibrated priors; `priors` stays the manifest-only prior
+        unit_priors, accuracy, calibration = priors, manifest.accuracy, None
+        if options.refine and options.calibrate:
+            t0 = time.perf_counter()
+            report("calibrate", 0, 1)
+            calibration, unit_priors, accuracy = calibrate_priors(buildings, manifest, priors, pkg.frames)
+            report("calibrate", 1, 1)
+            timings["calibrate"] = time.perf_counter() - t0
+
         t0 = time.perf_counter()
         report("plan", 0, 1)
         units = plan_units(
             buildings,
             manifest.camera,
-            priors,
+            unit_priors,
             pkg.frames,
             output_radiometry(pkg),
             times=[f.time for f in manifest.frames],
             frame_indices=[f.index for f in manifest.frames],
-            accuracy=manifest.accuracy,
+            accuracy=accuracy,
             options=options.unit_options(),
             plan=options.plan,
             targets=None
@@ -292,6 +317,7 @@ def plan_job(
         pkg.close()
         raise
     plan = JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units, len(ids))
+    plan.calibration, plan.calibration_s = calibration, timings.get("calibrate")
     plan.warning = resolution_warning(plan, options)
     return plan
 
@@ -344,10 +370,12 @@ def _run_planned(
     # -- write -------------------------------------------------------------------------------
     t0 = time.perf_counter()
     frames_of = {u.building.id: len(u.frames) for u in units}
+    mounting, calibration = calibration_documents(plan.calibration, manifest.mounting, plan.calibration_s)
     job = {
         "city_model": str(city_gml),
         "package": str(package),
         "refine": options.refine,
+        "calibrate": plan.calibration is not None,
         "workers": options.workers,
         "buildings_in_model": plan.n_model_buildings,
         "buildings_near_the_cameras": len(buildings),
@@ -360,6 +388,8 @@ def _run_planned(
         results=results,
         manifest=manifest,
         priors=priors,
+        mounting=mounting,
+        calibration=calibration,
         srs_name=header.srs_name,
         theme=options.theme,
         resolution_px_per_m=options.resolution_px_per_m,
@@ -381,6 +411,7 @@ def _run_planned(
         timings_s=timings,
         refine=options.refine,
         warning=plan.warning,
+        calibration=calibration,
     )
 
 

@@ -4,6 +4,7 @@ process pool), with a progress bar per stage and a closing summary table."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -14,6 +15,7 @@ from services.runner import STAGES, RunError, RunOptions, RunSummary, refine_ava
 
 _LABELS = {
     "ingest": "read model and package",
+    "calibrate": "calibrate the sequence",
     "plan": "plan building units",
     "units": "orient and texture buildings",
     "write": "write results",
@@ -79,7 +81,12 @@ def run_with_progress(
         TimeElapsedColumn(),
     )
     with Progress(*columns, console=console, transient=False) as bars:
-        tasks = {s: bars.add_task(_LABELS[s], total=None, start=False) for s in STAGES}
+        calibrating = options.refine and options.calibrate
+        tasks = {
+            s: bars.add_task(_LABELS[s], total=None, start=False)
+            for s in STAGES
+            if s != "calibrate" or calibrating
+        }
 
         def progress(stage: str, done: int, total: int) -> None:
             task = tasks[stage]
@@ -99,6 +106,12 @@ def run(
     buildings: str | None = typer.Option(None, "--buildings", help="Comma-separated building ids."),
     workers: int = typer.Option(1, "--workers", min=1, help="Processes for the building units."),
     no_refine: bool = typer.Option(False, "--no-refine", help="Keep the GNSS/INS prior poses."),
+    no_calibrate: bool = typer.Option(
+        False,
+        "--no-calibrate",
+        help="With refinement: skip the sequence calibration (boresight, GNSS offset, lever arm, "
+        "time delay) and refine each building from the raw priors.",
+    ),
     no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
 ) -> None:
     """Texture every building the sequence sees and write the results folder."""
@@ -111,6 +124,7 @@ def run(
         buildings=ids,
         workers=workers,
         refine=refine,
+        calibrate=not no_calibrate,
         display=not no_display,
     )
     try:
@@ -131,6 +145,23 @@ def run(
     )
     if not refine:
         console.print("poses: GNSS/INS priors (refinement " + ("off)" if no_refine else "not installed)"))
+    elif summary.calibration is not None:
+        console.print(calibration_line(summary.calibration))
+
+
+def calibration_line(cal: dict[str, Any]) -> str:
+    """One line on the sequence calibration of report.json (`calibration` block)."""
+    if not cal.get("run"):
+        return "calibration: off"
+    if not cal.get("accepted"):
+        return f"calibration: not accepted ({cal.get('reason', '')}); units refine from the priors"
+    b = ", ".join(f"{v:+.2f}" for v in cal.get("boresight_correction_deg", []))
+    o = ", ".join(f"{v:+.2f}" for v in cal.get("gnss_offset_m", []))
+    return (
+        f"calibration: boresight correction [{b}] deg, GNSS offset [{o}] m, "
+        f"time delay {cal.get('time_delay_s', 0.0):+.3f} s, {cal.get('frames', 0)} frames, "
+        f"edge support {cal.get('mean_edge_support', 0.0):.2f}"
+    )
 
 
 def register(root: typer.Typer) -> None:

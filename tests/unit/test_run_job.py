@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pickle
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -110,6 +111,7 @@ def test_orientation_and_report_documents(scene, job):
     assert doc["mounting"]["time_delay_s"] == 0.0
     rep = json.loads((out / "report.json").read_text())
     assert set(rep["timings_s"]) == {"ingest", "plan", "units", "write"}
+    assert rep["calibration"] == {"run": False}  # no refinement: no calibration
     b1 = next(b for b in rep["buildings"] if b["id"] == "B1")
     w0 = next(s for s in b1["surfaces"] if s["id"] == "B1_w0")
     assert w0["texels_observed"] / w0["texels_total"] > 0.9
@@ -230,7 +232,8 @@ def test_refinement_is_reported_and_a_failing_refinement_keeps_the_priors(scene,
     fake.__spec__ = importlib.util.spec_from_loader("workers.pipeline.coregister", loader=None)
     fake.refine_building = refine_building
     monkeypatch.setitem(sys.modules, "workers.pipeline.coregister", fake)
-    run_job(gml, pkg, tmp_path / "r", RunOptions(refine=True, display=False))
+    # no calibration: the stand-in must see the manifest's priors
+    run_job(gml, pkg, tmp_path / "r", RunOptions(refine=True, calibrate=False, display=False))
     doc = json.loads((tmp_path / "r" / "orientation.json").read_text())
     entries = [(f["index"], r["building"], r["status"]) for f in doc["frames"] for r in f["refined"]]
     b1 = [e for e in entries if e[1] == "B1"]
@@ -283,3 +286,67 @@ def test_only_buildings_within_reach_of_the_cameras_are_kept():
     far = box_building("FAR", 900, 900, 905, 905, 5)
     kept, ids = near_buildings(iter([near, far]), [look_at([2, -10, 1.6], [2, 0, 2])], 300.0)
     assert [b.id for b in kept] == ["NEAR"] and ids == {"NEAR", "FAR"}
+
+
+def test_refinement_calibrates_the_sequence_first_and_reports_the_mounting(tmp_path: Path) -> None:
+    """A small synthetic drive (error-free poses) with refinement: the calibrate stage runs, its
+    block goes to report.json, the estimated mounting to orientation.json, whose priors stay the
+    manifest-only ones."""
+    from db.citygml.writer import write_citygml
+    from db.sequence_package import open_package
+    from workers.pipeline.georef import prior_poses
+    from workers.pipeline.synth import ErrorOptions, SynthOptions, procedural_block, synthesize
+    from workers.pipeline.synth import write_synthetic_package as write_synth
+
+    blds = procedural_block(6, seed=1)
+    res = synthesize(blds, SynthOptions(n_frames=8, seed=1, buildings=2, errors=ErrorOptions(enabled=False)))
+    gml = tmp_path / "city.gml"
+    write_citygml(gml, blds, srs_name=blds[0].srs_name)
+    pkg = write_synth(res, tmp_path / "seq")
+    stages: list[str] = []
+    summary = run_job(
+        gml, pkg, tmp_path / "out", RunOptions(resolution_px_per_m=2, refine=True, display=False),
+        progress=lambda stage, done, total: stages.append(stage),
+    )
+    assert "calibrate" in stages and stages.index("calibrate") < stages.index("plan")
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    cal = rep["calibration"]
+    assert cal["run"] is True and isinstance(cal["accepted"], bool)
+    assert len(cal["gnss_offset_m"]) == 3 and len(cal["boresight_correction_deg"]) == 3
+    assert "calibrate" in rep["timings_s"] and rep["calibrate"] is True
+    assert summary.calibration == cal
+    doc = json.loads((tmp_path / "out" / "orientation.json").read_text())
+    mnt = doc["mounting"]
+    assert isinstance(mnt["time_delay_s"], float) and np.isfinite(mnt["time_delay_s"])
+    assert np.all(np.isfinite(mnt["boresight_deg"])) and np.all(np.isfinite(mnt["lever_arm_m"]))
+    manifest = open_package(pkg).manifest
+    if cal["accepted"]:  # error-free poses: the estimate stays near the manifest's mounting
+        assert np.allclose(mnt["boresight_deg"], manifest.mounting.boresight_deg, atol=0.5)
+        assert np.allclose(mnt["lever_arm_m"], manifest.mounting.lever_arm_m, atol=0.5)
+        assert abs(mnt["time_delay_s"]) < 0.05
+    for f, p in zip(doc["frames"], prior_poses(manifest, blds[0].srs_name), strict=True):
+        assert np.allclose(f["prior"]["center"], p.center, atol=1e-6)
+
+
+def test_cli_no_calibrate_turns_the_stage_off(
+    scene: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import services.cli.run_cmd as run_cmd
+    from services.runner import RunSummary
+
+    _, gml, pkg, _, _ = scene
+    seen: list[RunOptions] = []
+
+    def fake_run_job(
+        city: Path, package: Path, out: Path, options: RunOptions, progress: object = None
+    ) -> RunSummary:
+        seen.append(options)
+        return RunSummary(tmp_path, 0, 0, [], [], {}, {}, options.refine, calibration={"run": False})
+
+    monkeypatch.setattr(run_cmd, "run_job", fake_run_job)
+    monkeypatch.setattr(run_cmd, "refine_available", lambda: True)
+    for flags, want in (([], True), (["--no-calibrate"], False)):
+        res = CliRunner().invoke(app, ["run", str(gml), str(pkg), "-o", str(tmp_path / "o"), *flags])
+        assert res.exit_code == 0, res.output
+        assert seen[-1].refine is True and seen[-1].calibrate is want
+    assert "calibration: off" in res.output
