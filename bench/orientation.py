@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from workers.pipeline.calibrate import apply_calibration, calibrate_sequence, calibrated_accuracy
-from workers.pipeline.coregister import CoregisterOptions, refine_building
+from workers.pipeline.coregister import CoregisterOptions, calibrated_options, refine_building
 from workers.pipeline.coregister_frame import pose_delta
 from workers.pipeline.georef import prior_poses
 from workers.pipeline.model_edges import building_wireframe, visible_wireframe
@@ -96,6 +96,8 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bo
                  "ms_per_frame": round(1000 * (time.perf_counter() - t0) / len(frames), 1)}
         priors = apply_calibration(priors, [times[i] for i in frames], cal)
         accuracy = calibrated_accuracy(cal, prior=accuracy)
+        if cal.accepted:
+            options = calibrated_options(options)
     for b in res.buildings:
         if b.id not in res.truth.cluster:
             continue

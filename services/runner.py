@@ -296,6 +296,12 @@ def plan_job(
 
         t0 = time.perf_counter()
         report("plan", 0, 1)
+        unit_options = options.unit_options()
+        if calibration is not None and calibration.accepted and unit_options.refine_options is None:
+            # the common error is removed: the units skip their wide searches
+            from workers.pipeline.coregister import CoregisterOptions, calibrated_options
+
+            unit_options = replace(unit_options, refine_options=calibrated_options(CoregisterOptions()))
         units = plan_units(
             buildings,
             manifest.camera,
@@ -305,7 +311,7 @@ def plan_job(
             times=[f.time for f in manifest.frames],
             frame_indices=[f.index for f in manifest.frames],
             accuracy=accuracy,
-            options=options.unit_options(),
+            options=unit_options,
             plan=options.plan,
             targets=None
             if options.buildings is None

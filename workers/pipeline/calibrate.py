@@ -46,11 +46,23 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_frame import FrameFitOptions, _normal_equations, _visible, frame_box
+from workers.pipeline.coregister_frame import (
+    FrameFitOptions,
+    _image_normals,
+    _normal_equations,
+    _visible,
+    frame_box,
+)
 from workers.pipeline.coregister_geometry import apply_delta, so3_log
-from workers.pipeline.coregister_joint import JointOptions, joint_fit
+from workers.pipeline.coregister_joint import JointOptions, _gradient, _score, joint_fit
 from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
-from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, WireframeError, mesh_wireframe
+from workers.pipeline.model_edges import (
+    EdgeOptions,
+    VisibleWireframe,
+    Wireframe,
+    WireframeError,
+    mesh_wireframe,
+)
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
 from workers.pipeline.sequence import Accuracy, FrameSource
@@ -73,9 +85,12 @@ class CalibrationOptions:
 
     # at most this many frames (evenly spread over the sequence) take part
     max_frames: int = 40
-    # the start: `joint_fit` over the frames (tie points off: the frames are far apart in time)
-    joint: JointOptions = field(default_factory=lambda: JointOptions(ties=False, max_frames=40,
-                                                                      coarse_frames=20))
+    # the start: `joint_fit` over the frames (tie points off: the frames are far apart in time;
+    # its support test is loose: one common correction does not align frames with white noise,
+    # the final test below, after the per-frame deviations are adjusted, decides)
+    joint: JointOptions = field(default_factory=lambda: JointOptions(
+        ties=False, max_frames=40, coarse_frames=20, max_correction_m=12.0, max_correction_deg=10.0,
+        min_mean_support=0.3))
     edges: EdgeOptions = field(default_factory=EdgeOptions)
     fit: FrameFitOptions = field(default_factory=FrameFitOptions)
     features: FeatureOptions = field(default_factory=FeatureOptions)
@@ -88,6 +103,10 @@ class CalibrationOptions:
     # a-priori σ of the lever-arm correction (m) and of the time delay (s); 0 fixes the term
     lever_arm_sigma_m: float = 1.0
     time_delay_sigma_s: float = 0.1
+    # the time delay is first searched on a grid up to ± this (s) with this step: its effect is
+    # large at turns only, often beyond the fine stage's search radius
+    delay_search_s: float = 0.1
+    delay_step_s: float = 0.0025
     # per-frame deviations from the systematic model (white noise, vibration)
     frame_sigma_deg: float = 0.3
     frame_sigma_m: float = 0.3
@@ -198,7 +217,9 @@ def design(pose: Pose, velocity: np.ndarray, rate: np.ndarray) -> np.ndarray:
     return A
 
 
-def apply_calibration(priors: Sequence[Pose], times: Sequence[float], calibration: SequenceCalibration) -> list[Pose]:
+def apply_calibration(
+    priors: Sequence[Pose], times: Sequence[float], calibration: SequenceCalibration
+) -> list[Pose]:
     """Calibrated prior of every frame (recording order, `times` in seconds); the priors unchanged
     when the calibration was not accepted."""
     if not calibration.accepted:
@@ -285,7 +306,6 @@ def calibrate_sequence(
     A = {i: design(priors[i], v[k], w[k]) for k, i in enumerate(frames)}
     # frames whose prior view shows scene edges, spread over the sequence
     fo = options.fit
-    margin = options.joint.coarse_radius_px + options.joint.radius_start_px + fo.roi_margin_px
     usable = []
     for i in frames:
         vis = _visible(wireframe, camera, priors[i], raycaster, options.edges, 64)
@@ -298,7 +318,8 @@ def calibrate_sequence(
     images = {i: frame_source.load(i) for i in pick}
     P = _prior_information(accuracy, options)
     start = joint_fit(camera, wireframe, raycaster, pick, images, {i: priors[i] for i in pick}, P[:6, :6],
-                      replace(options.joint, max_frames=options.max_frames), fo, options.edges, options.features)
+                      replace(options.joint, max_frames=options.max_frames), fo, options.edges,
+                      options.features)
     if not start.accepted:
         return replace(zero, reason=f"no common correction: {start.reason}", frames=tuple(pick))
     data = []
@@ -307,7 +328,8 @@ def calibrate_sequence(
                        fo.max_samples)
         if len(vis.points) < fo.min_samples:
             continue
-        roi = frame_box(camera, apply_delta(priors[i], start.delta), vis, options.radius_start_px + fo.roi_margin_px)
+        roi = frame_box(camera, apply_delta(priors[i], start.delta), vis,
+                        options.radius_start_px + fo.roi_margin_px)
         if roi is None:
             continue
         try:
@@ -317,8 +339,48 @@ def calibrate_sequence(
         data.append(_Frame(i, priors[i], A[i], feats))
     theta0 = np.zeros(N_PARAMS)
     theta0[:6] = start.delta
+    if options.time_delay_sigma_s > 0 and options.delay_search_s > 0:
+        theta0[9] = _delay_search(camera, wireframe, raycaster, data, images, theta0, options)
     cal = _adjust(camera, wireframe, raycaster, data, theta0, P, options)
     return _accept(replace(cal, frames=tuple(f.index for f in data)), options)
+
+
+def _delay_search(
+    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame],
+    images: Mapping[int, np.ndarray], theta0: np.ndarray, options: CalibrationOptions,
+) -> float:
+    """Time delay τ (s) maximising the oriented-gradient score (`coregister_joint._score`) of the
+    scene wireframe over the frames, the other parameters at `theta0`; 0 when no frame turns or
+    moves enough for τ to matter."""
+    taus = np.arange(-options.delay_search_s, options.delay_search_s + 1e-12, options.delay_step_s)
+    total = np.zeros(len(taus))
+    used = 0
+    for f in data:
+        col = f.A[:, 9]
+        pose = apply_delta(f.prior, f.A @ theta0)
+        vis = _visible(wireframe, camera, pose, raycaster, options.edges, options.fit.max_samples)
+        if len(vis.points) < options.fit.min_samples:
+            continue
+        # the delay's effect on this frame, pixels per second, at the samples' median depth
+        uv, z = pose.project(camera, vis.points)
+        ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
+        if ok.sum() < options.fit.min_samples:
+            continue
+        zmed = float(np.median(z[ok]))
+        px_per_s = camera.fx * (np.linalg.norm(col[:3]) + np.linalg.norm(col[3:]) / zmed)
+        if px_per_s * options.delay_step_s < 0.5:
+            continue
+        nrm = _image_normals(camera, pose, vis, uv)[ok]
+        cand = []
+        for tau in taus:
+            th = theta0.copy()
+            th[9] = tau
+            cand.append(apply_delta(f.prior, f.A @ th).project(camera, vis.points[ok])[0])
+        total += _score(_gradient(images[f.index], 2, 1.0), 2, np.stack(cand), nrm, vis.weight[ok])
+        used += 1
+    if used == 0:
+        return 0.0
+    return float(taus[int(np.argmax(total))])
 
 
 def _adjust(
@@ -337,8 +399,8 @@ def _adjust(
     for it in range(options.iterations):
         poses = {f.index: apply_delta(f.prior, f.A @ theta + eps[f.index]) for f in data}
         if it % 4 == 0:
-            vis = {f.index: _visible(wireframe, camera, poses[f.index], raycaster, options.edges, fo.max_samples)
-                   for f in data}
+            vis = {f.index: _visible(wireframe, camera, poses[f.index], raycaster, options.edges,
+                                     fo.max_samples) for f in data}
         R_e = max(fo.edge_radius_min_px, options.radius_start_px * options.radius_decay**it)
         fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
         S = P.copy()

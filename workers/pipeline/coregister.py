@@ -86,7 +86,7 @@ from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
 from workers.pipeline.sequence import Accuracy, FrameSource
 
-__all__ = ["CoregisterOptions", "RefinedPose", "prior_information", "refine_building"]
+__all__ = ["CoregisterOptions", "RefinedPose", "calibrated_options", "prior_information", "refine_building"]
 
 
 @dataclass(frozen=True)
@@ -171,6 +171,18 @@ class CoregisterOptions:
     # frames still at their prior are oriented (passes 1, 2, inheritance) against the whole
     # scene of the ray caster, the building and its neighbours
     scene_fallback: bool = True
+    # the priors come from an accepted sequence calibration (`calibrate`): the common error is
+    # already removed, so no joint coarse search and no coarse search of the joint fine stage
+    calibrated: bool = False
+
+
+def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = 0.3,
+                       accuracy_floor_deg: float = 0.3) -> CoregisterOptions:
+    """`options` for priors from an accepted sequence calibration: no wide searches, the prior's
+    σ floors lowered to the per-frame deviations (metres, degrees)."""
+    return replace(options, calibrated=True, joint_coarse=False, joint=replace(options.joint, search=False),
+                   prior_sigma_scale=1.0, position_sigma_floor_m=accuracy_floor_m,
+                   attitude_sigma_floor_deg=accuracy_floor_deg)
 
 
 @dataclass(frozen=True, eq=False)

@@ -68,6 +68,9 @@ class JointOptions:
 
     # at most this many frames (evenly spread) take part
     max_frames: int = 40
+    # run the coarse search (common image shifts, common world translations); off when the priors
+    # are already calibrated for the sequence (`calibrate`): the fine stage starts at zero
+    search: bool = True
     # coarse: frames downsampled by this factor, smoothed with this σ (downsampled pixels) ...
     coarse_downsample: int = 2
     coarse_sigma_px: float = 3.0
@@ -193,17 +196,17 @@ def joint_fit(
             boxes[i] = box
     if len(data) < options.min_supported_frames:
         return JointFit(delta=np.zeros(6), reason="too few frames see model edges")
-    starts = _coarse_candidates(camera, wireframe, raycaster, data, images, options, fit_options,
-                                edge_options)
+    starts = [np.zeros(6)]
+    if options.search:
+        starts = _coarse_candidates(camera, wireframe, raycaster, data, images, options, fit_options,
+                                    edge_options)
     verify = [data[k] for k in np.unique(np.linspace(0, len(data) - 1, min(len(data), options.verify_frames))
                                          .round().astype(int))]
-    best = None
-    for d0 in starts:
-        fit = _fine(camera, wireframe, raycaster, verify, d0, prior_info, options.verify_iterations, options,
-                    fit_options, edge_options)
-        if best is None or fit.mean_support > best.mean_support:
-            best = fit
-    assert best is not None
+    best = JointFit(delta=starts[0])
+    if len(starts) > 1:
+        fits = [_fine(camera, wireframe, raycaster, verify, d0, prior_info, options.verify_iterations,
+                      options, fit_options, edge_options) for d0 in starts]
+        best = max(fits, key=lambda f: f.mean_support)
     order = [fr.index for fr in data]
     ties = []
     if options.ties:
