@@ -51,6 +51,7 @@ from workers.pipeline.coregister_frame import (
     _image_normals,
     _normal_equations,
     _visible,
+    edge_search,
     frame_box,
 )
 from workers.pipeline.coregister_geometry import apply_delta, so3_log
@@ -117,6 +118,10 @@ class CalibrationOptions:
     # acceptance (edge support as in `coregister_joint`)
     min_mean_support: float = 0.45
     min_supported_frames: int = 3
+    # ... and the support must exceed the null support (samples moved this far off their edges)
+    # by this much
+    null_shift_px: float = 6.0
+    min_support_gain: float = 0.2
     max_correction_m: float = 12.0
     max_correction_deg: float = 10.0
 
@@ -134,6 +139,9 @@ class SequenceCalibration:
         frames: frames that took part.
         support: `{frame: share of visible edge samples with an image edge within support_px}`.
         mean_support: mean of `support`.
+        mean_null_support: the same share with the samples moved `null_shift_px` off their edges
+            along the image normal (edge clutter and noise; `mean_support` must exceed it by
+            `min_support_gain`).
     """
 
     theta: np.ndarray
@@ -143,6 +151,7 @@ class SequenceCalibration:
     frames: tuple[int, ...] = ()
     support: dict[int, float] = field(default_factory=dict)
     mean_support: float = 0.0
+    mean_null_support: float = 0.0
 
     @property
     def boresight_rad(self) -> np.ndarray:
@@ -172,6 +181,7 @@ class SequenceCalibration:
             "reason": self.reason,
             "frames": len(self.frames),
             "mean_edge_support": round(self.mean_support, 3),
+            "mean_null_support": round(self.mean_null_support, 3),
             "boresight_correction_deg": np.degrees(self.boresight_rad).round(4).tolist(),
             "offset_m": self.offset_m.round(4).tolist(),
             "lever_arm_correction_cam_m": self.lever_arm_m.round(4).tolist(),
@@ -433,6 +443,7 @@ def _adjust(
         if R_e <= fo.edge_radius_min_px + 1e-9 and small and big < 5e-3:
             break
     support: dict[int, float] = {}
+    null: dict[int, float] = {}
     chi2, n = 0.0, 0
     for f in data:
         pose = apply_delta(f.prior, f.A @ theta + eps[f.index])
@@ -442,7 +453,18 @@ def _adjust(
         _, _, wt, off, found, *_ = _normal_equations(camera, pose, v, f.feats, none, fo.edge_radius_min_px,
                                                      fo.point_radius_min_px, pose, zero6, fo)
         near = found & (np.abs(off) <= fo.support_px)
-        support[f.index] = float(np.sum(v.weight * near) / max(float(np.sum(v.weight)), 1e-12))
+        wsum = max(float(np.sum(v.weight)), 1e-12)
+        support[f.index] = float(np.sum(v.weight * near) / wsum)
+        # the same test with the samples moved off their edges along the normal: how often clutter
+        # or noise alone gives "support" (white noise frames reach ~0.4)
+        uv, _ = pose.project(camera, v.points)
+        nrm = _image_normals(camera, pose, v, uv)
+        hits = 0.0
+        for sgn in (-1.0, 1.0):
+            o2, f2 = edge_search(f.feats, uv + sgn * options.null_shift_px * nrm, nrm,
+                                 fo.edge_radius_min_px, fo)
+            hits += float(np.sum(v.weight * (f2 & (np.abs(o2) <= fo.support_px)))) / wsum
+        null[f.index] = hits / 2.0
         inl = wt > 0
         chi2 += float(np.sum(off[inl] ** 2))
         n += int(inl.sum())
@@ -452,7 +474,9 @@ def _adjust(
     except np.linalg.LinAlgError:
         cov = np.full((N_PARAMS, N_PARAMS), np.nan)
     mean = float(np.mean(list(support.values()))) if support else 0.0
-    return SequenceCalibration(theta=theta, covariance=cov, support=support, mean_support=mean)
+    mean_null = float(np.mean(list(null.values()))) if null else 0.0
+    return SequenceCalibration(theta=theta, covariance=cov, support=support, mean_support=mean,
+                               mean_null_support=mean_null)
 
 
 def _bounded(d: np.ndarray) -> np.ndarray:
@@ -475,6 +499,9 @@ def _accept(cal: SequenceCalibration, options: CalibrationOptions) -> SequenceCa
         reason = f"mean edge support {cal.mean_support:.2f} < {options.min_mean_support}"
     elif supported < options.min_supported_frames:
         reason = f"only {supported} frames with edge support"
+    elif cal.mean_support - cal.mean_null_support < options.min_support_gain:
+        reason = (f"edge support {cal.mean_support:.2f} not above the null support "
+                  f"{cal.mean_null_support:.2f} by {options.min_support_gain}")
     elif not np.all(np.isfinite(cal.covariance)):
         reason = "calibration not determined"
     elif np.linalg.norm(th[3:6]) + np.linalg.norm(th[6:9]) > options.max_correction_m or \
