@@ -317,7 +317,9 @@ def calibrate_sequence(
     # frames whose prior view shows scene edges, spread over the sequence
     fo = options.fit
     usable = []
-    for i in frames:
+    # long sequences: only an evenly spread subset is looked at
+    n_look = min(len(frames), 4 * options.max_frames)
+    for i in (frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n_look).round().astype(int))):
         vis = _visible(wireframe, camera, priors[i], raycaster, options.edges, 64)
         if len(vis.points) >= fo.min_samples:
             usable.append(i)
@@ -349,9 +351,16 @@ def calibrate_sequence(
         data.append(_Frame(i, priors[i], A[i], feats))
     theta0 = np.zeros(N_PARAMS)
     theta0[:6] = start.delta
-    if options.time_delay_sigma_s > 0 and options.delay_search_s > 0:
-        theta0[9] = _delay_search(camera, wireframe, raycaster, data, images, theta0, options)
     cal = _adjust(camera, wireframe, raycaster, data, theta0, P, options)
+    if options.time_delay_sigma_s > 0 and options.delay_search_s > 0:
+        # the delay shows at turns only, often beyond the fine stage's search radius: searched on
+        # a grid at the adjusted parameters, then adjusted again from there when it moved
+        theta1 = cal.theta.copy()
+        theta1[9] = _delay_search(camera, wireframe, raycaster, data, images, cal.theta, options)
+        if abs(theta1[9] - cal.theta[9]) > options.delay_step_s:
+            again = _adjust(camera, wireframe, raycaster, data, theta1, P, options)
+            if again.mean_support >= cal.mean_support:
+                cal = again
     return _accept(replace(cal, frames=tuple(f.index for f in data)), options)
 
 

@@ -174,6 +174,10 @@ class CoregisterOptions:
     # the priors come from an accepted sequence calibration (`calibrate`): the common error is
     # already removed, so no joint coarse search and no coarse search of the joint fine stage
     calibrated: bool = False
+    # ... then the joint adjustment runs only when fewer than this share of a probe of frames
+    # (evenly spread) is refined on its own
+    calibrated_joint_below: float = 0.5
+    calibrated_probe_frames: int = 5
 
 
 def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = 0.3,
@@ -275,6 +279,22 @@ def refine_building(
             starts = {i: apply_coarse(camera, prior[i], common, options.fit) for i in frames}
             fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
             coarse = options.frame_coarse_radius_px > 0
+    t = {i: float(times[i]) if times is not None else float(i) for i in frames}
+    if options.calibrated:
+        # calibrated priors: every frame on its own (flights), unless most frames of a probe do not
+        # determine their pose alone (close drives): then the joint adjustment with tie points
+        n = min(len(frames), options.calibrated_probe_frames)
+        probe = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n).round().astype(int))]
+        ok = [fit_frame(camera, wf, raycaster, images[i], starts[i], infos[i], starts[i], fo, options.edges,
+                        options.features, coarse=False).accepted for i in probe]
+        if np.mean(ok) >= options.calibrated_joint_below:
+            out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, False, options)
+            rest = [i for i in frames if out[i].status == "prior"]
+            if options.scene_fallback and scene_wf is not None and rest:
+                scene = _orient(camera, scene_wf, raycaster, rest, images, prior, starts, infos, t, fo, False,
+                                options)
+                out.update({i: r for i, r in scene.items() if r.status == "refined"})
+            return out
     joint = None
     if options.joint_fine and common is None and scene_wf is not None:
         jf = joint_fit(camera, scene_wf, raycaster, frames, images, prior, infos[frames[len(frames) // 2]],
@@ -284,7 +304,6 @@ def refine_building(
             starts = {i: apply_delta(prior[i], jf.frame_delta.get(i, jf.delta)) for i in frames}
             fo = replace(fo, coarse_radius_px=0.0)
             coarse = False
-    t = {i: float(times[i]) if times is not None else float(i) for i in frames}
     # frames related by tie points inside the joint adjustment are not refitted one by one (a
     # single close-range frame does not determine its pose; the tie points did)
     if joint is not None and (not options.joint_refit or joint.tie_pairs > 0):
