@@ -182,9 +182,14 @@ class CoregisterOptions:
 
 def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = 0.3,
                        accuracy_floor_deg: float = 0.3) -> CoregisterOptions:
-    """`options` for priors from an accepted sequence calibration: no wide searches, the prior's
-    σ floors lowered to the per-frame deviations (metres, degrees)."""
-    return replace(options, calibrated=True, joint_coarse=False, joint=replace(options.joint, search=False),
+    """`options` for priors from an accepted sequence calibration: no joint coarse search and a
+    narrow one in the joint fine stage, the prior's σ floors lowered to the per-frame deviations
+    (metres, degrees)."""
+    # a narrow joint search stays: a calibration from a short sequence can leave a degree of pan
+    # (drives: pan and a lateral offset are nearly interchangeable along one street)
+    joint = replace(options.joint, coarse_radius_px=64.0, translation_max_m=1.0, translation_step_m=0.5,
+                    candidates=1, translation_candidates=1)
+    return replace(options, calibrated=True, joint_coarse=False, joint=joint,
                    prior_sigma_scale=1.0, position_sigma_floor_m=accuracy_floor_m,
                    attitude_sigma_floor_deg=accuracy_floor_deg)
 
