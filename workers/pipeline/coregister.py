@@ -7,6 +7,12 @@ Out: `{frame: RefinedPose}` with status `"refined"` or `"prior"`.
 
 Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
 
+0. when the priors come from an accepted sequence calibration (`calibrate`; options from
+   `calibrated_options`), the common error is already removed: a probe of frames decides whether
+   frames orient alone (flights: step 1 per frame, then 3 and 4) or not (close-range drives: the
+   joint adjustment 2b with a narrow search and tie points); steps 2 and the wide searches are
+   skipped.
+
 1. per frame (`coregister_frame`): the building's wireframe with hidden edges removed by ray
    casting through the whole scene (`model_edges`); Förstner points, LSD segments and their
    intersections, gradients and an edge-distance pyramid (`features`); iterative robust least
