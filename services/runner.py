@@ -241,7 +241,6 @@ class JobPlan:
     n_model_buildings: int = 0
     warning: str | None = None
     calibration: SequenceCalibration | None = None
-    calibration_s: float | None = None
 
 
 def plan_job(
@@ -323,7 +322,7 @@ def plan_job(
         pkg.close()
         raise
     plan = JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units, len(ids))
-    plan.calibration, plan.calibration_s = calibration, timings.get("calibrate")
+    plan.calibration = calibration
     plan.warning = resolution_warning(plan, options)
     return plan
 
@@ -376,7 +375,9 @@ def _run_planned(
     # -- write -------------------------------------------------------------------------------
     t0 = time.perf_counter()
     frames_of = {u.building.id: len(u.frames) for u in units}
-    mounting, calibration = calibration_documents(plan.calibration, manifest.mounting, plan.calibration_s)
+    mounting, calibration = calibration_documents(
+        plan.calibration, manifest.mounting, timings.get("calibrate")
+    )
     job = {
         "city_model": str(city_gml),
         "package": str(package),

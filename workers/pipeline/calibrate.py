@@ -15,7 +15,8 @@ building corners only) does not determine its pose, and a single building seen a
 street cannot tell a lever arm from a GNSS offset. Over the whole sequence and all its buildings,
 with the headings changing at every turn, all of them are observable.
 
-Model: frame i's correction `δ_i = (ω_i, dC_i)` (`coregister_geometry.apply_delta`) is
+Model (`calibrate_model`): frame i's correction `δ_i = (ω_i, dC_i)`
+(`coregister_geometry.apply_delta`) is
 
     ω_i  = ω − τ · Ω_i            (Ω_i: angular rate of the prior, camera frame, rad/s)
     dC_i = b + R_i · l − τ · v_i  (v_i: velocity of the prior centre, world, m/s)
@@ -45,16 +46,17 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from workers.pipeline.calibrate_model import N_PARAMS, design, frame_motion
 from workers.pipeline.camera import Camera
 from workers.pipeline.coregister_frame import (
     FrameFitOptions,
     _image_normals,
     _normal_equations,
     _visible,
-    edge_search,
+    edge_support,
     frame_box,
 )
-from workers.pipeline.coregister_geometry import apply_delta, so3_log
+from workers.pipeline.coregister_geometry import apply_delta
 from workers.pipeline.coregister_joint import JointOptions, _gradient, _score, joint_fit
 from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
 from workers.pipeline.model_edges import (
@@ -74,10 +76,9 @@ __all__ = [
     "apply_calibration",
     "calibrate_sequence",
     "calibrated_accuracy",
+    "design",
     "frame_motion",
 ]
-
-N_PARAMS = 10
 
 
 @dataclass(frozen=True)
@@ -195,38 +196,6 @@ class SequenceCalibration:
                 "time_delay_s": round(float(sd[9]), 5),
             },
         }
-
-
-def frame_motion(poses: Sequence[Pose], times: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity `(N, 3)` of the centres (world, m/s) and angular rate `(N, 3)` (camera frame of
-    each pose, rad/s) of a pose sequence in recording order, by central differences (one-sided
-    at the ends; zero where two stamps coincide or for a single pose)."""
-    n = len(poses)
-    v = np.zeros((n, 3))
-    w = np.zeros((n, 3))
-    t = np.asarray(times, dtype=np.float64)
-    for i in range(n):
-        a, b = max(i - 1, 0), min(i + 1, n - 1)
-        dt = t[b] - t[a]
-        if b == a or dt <= 0:
-            continue
-        v[i] = (poses[b].center - poses[a].center) / dt
-        Ri = poses[i].R_world_from_cam
-        # rate in the camera frame of pose i: R_a^T R_b = exp(Ω dt) expressed at i
-        w_a = so3_log(poses[a].R_world_from_cam.T @ poses[b].R_world_from_cam) / dt
-        w[i] = Ri.T @ poses[a].R_world_from_cam @ w_a
-    return v, w
-
-
-def design(pose: Pose, velocity: np.ndarray, rate: np.ndarray) -> np.ndarray:
-    """`A_i` `(6, 10)`: frame correction `δ_i = A_i θ` (see the module docstring)."""
-    A = np.zeros((6, N_PARAMS))
-    A[0:3, 0:3] = np.eye(3)
-    A[0:3, 9] = -rate
-    A[3:6, 3:6] = np.eye(3)
-    A[3:6, 6:9] = pose.R_world_from_cam
-    A[3:6, 9] = -velocity
-    return A
 
 
 def apply_calibration(
@@ -457,28 +426,14 @@ def _adjust(
     null: dict[int, float] = {}
     chi2, n = 0.0, 0
     for f in data:
-        pose = apply_delta(f.prior, f.A @ theta + eps[f.index])
-        v = _visible(wireframe, camera, pose, raycaster, options.edges, fo.max_samples)
-        if len(v.points) < fo.min_samples:
+        # the null support: how often clutter or noise alone gives "support" (white noise ~0.4)
+        got = edge_support(camera, wireframe, raycaster, apply_delta(f.prior, f.A @ theta + eps[f.index]),
+                           f.feats, options.edges, fo, options.null_shift_px)
+        if got is None:
             continue
-        _, _, wt, off, found, *_ = _normal_equations(camera, pose, v, f.feats, none, fo.edge_radius_min_px,
-                                                     fo.point_radius_min_px, pose, zero6, fo)
-        near = found & (np.abs(off) <= fo.support_px)
-        wsum = max(float(np.sum(v.weight)), 1e-12)
-        support[f.index] = float(np.sum(v.weight * near) / wsum)
-        # the same test with the samples moved off their edges along the normal: how often clutter
-        # or noise alone gives "support" (white noise frames reach ~0.4)
-        uv, _ = pose.project(camera, v.points)
-        nrm = _image_normals(camera, pose, v, uv)
-        hits = 0.0
-        for sgn in (-1.0, 1.0):
-            o2, f2 = edge_search(f.feats, uv + sgn * options.null_shift_px * nrm, nrm,
-                                 fo.edge_radius_min_px, fo)
-            hits += float(np.sum(v.weight * (f2 & (np.abs(o2) <= fo.support_px)))) / wsum
-        null[f.index] = hits / 2.0
-        inl = wt > 0
-        chi2 += float(np.sum(off[inl] ** 2))
-        n += int(inl.sum())
+        support[f.index], null[f.index], inl = got
+        chi2 += float(np.sum(inl**2))
+        n += len(inl)
     s0 = max(1.0, chi2 / max(n - N_PARAMS, 1) / fo.sigma_edge_px**2)
     try:
         cov = np.linalg.inv(S) * s0

@@ -57,6 +57,7 @@ __all__ = [
     "apply_delta",
     "coarse_search",
     "edge_search",
+    "edge_support",
     "fit_frame",
     "frame_box",
     "pose_delta",
@@ -381,6 +382,41 @@ def _normal_equations(
         H += np.einsum("m,mki,mkj->ij", wc, Jc, Jc)
         g += np.einsum("m,mki,mk->i", wc, Jc, rc)
     return H, g, w_e, off, found, rc, wc, idx
+
+
+def edge_support(
+    camera: Camera,
+    wireframe: Wireframe,
+    raycaster: RayCaster,
+    pose: Pose,
+    feats: ImageFeatures,
+    edge_options: EdgeOptions,
+    options: FrameFitOptions,
+    null_shift_px: float = 0.0,
+) -> tuple[float, float, np.ndarray] | None:
+    """How well the wireframe projected with `pose` meets the frame's edges, at the final edge
+    search radius: (support: class-weighted share of visible edge samples with an image edge
+    within `support_px`; null support: the same share with the samples moved ±`null_shift_px`
+    off their edges along the image normal, edge clutter and noise alone, 0 when
+    `null_shift_px` is 0; inlier edge offsets `(N,)` px). None with fewer than `min_samples`
+    visible samples."""
+    v = _visible(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
+    if len(v.points) < options.min_samples:
+        return None
+    _, _, w, off, found, *_ = _normal_equations(camera, pose, v, feats, np.zeros((0, 2)),
+                                                options.edge_radius_min_px, options.point_radius_min_px,
+                                                pose, np.zeros((6, 6)), options)
+    wsum = max(float(np.sum(v.weight)), 1e-12)
+    support = float(np.sum(v.weight * (found & (np.abs(off) <= options.support_px)))) / wsum
+    null = 0.0
+    if null_shift_px > 0:
+        uv, _ = pose.project(camera, v.points)
+        nrm = _image_normals(camera, pose, v, uv)
+        for sgn in (-1.0, 1.0):
+            o2, f2 = edge_search(feats, uv + sgn * null_shift_px * nrm, nrm, options.edge_radius_min_px,
+                                 options)
+            null += float(np.sum(v.weight * (f2 & (np.abs(o2) <= options.support_px)))) / wsum / 2.0
+    return support, null, off[w > 0]
 
 
 def _evaluate(

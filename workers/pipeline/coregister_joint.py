@@ -43,6 +43,7 @@ from workers.pipeline.coregister_frame import (
     _image_normals,
     _normal_equations,
     _visible,
+    edge_support,
     frame_box,
 )
 from workers.pipeline.coregister_geometry import apply_delta, pose_delta
@@ -412,17 +413,12 @@ def _fine(
     support: dict[int, float] = {}
     chi2, n = 0.0, 0
     for fr in data:
-        pose = apply_delta(fr.prior, x[fr.index])
-        v = _visible(wireframe, camera, pose, raycaster, eo, fo.max_samples)
-        if len(v.points) < fo.min_samples:
+        got = edge_support(camera, wireframe, raycaster, apply_delta(fr.prior, x[fr.index]), fr.feats, eo, fo)
+        if got is None:
             continue
-        _, _, w, off, found, *_ = _normal_equations(camera, pose, v, fr.feats, none, fo.edge_radius_min_px,
-                                                    fo.point_radius_min_px, pose, zero6, fo)
-        near = found & (np.abs(off) <= fo.support_px)
-        support[fr.index] = float(np.sum(v.weight * near) / max(float(np.sum(v.weight)), 1e-12))
-        inl = w > 0
-        chi2 += float(np.sum(off[inl] ** 2))
-        n += int(inl.sum())
+        support[fr.index], _, inl = got
+        chi2 += float(np.sum(inl**2))
+        n += len(inl)
     s0 = max(1.0, chi2 / max(n - 6, 1) / fo.sigma_edge_px**2)
     try:
         cov = np.linalg.inv(Hc) * s0

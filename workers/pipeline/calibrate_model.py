@@ -1,0 +1,58 @@
+"""The sequence calibration's error model: how the ten systematic parameters θ correct one frame.
+
+θ = (ω boresight correction, camera frame, rad; b GNSS offset, world, m; l lever-arm correction,
+camera frame, m; τ camera-to-INS delay, s). Frame i's correction `δ_i = (ω_i, dC_i)`
+(`coregister_geometry.apply_delta`) is linear in θ, `δ_i = A_i θ`:
+
+    ω_i  = ω − τ · Ω_i            (Ω_i: angular rate of the prior, camera frame, rad/s)
+    dC_i = b + R_i · l − τ · v_i  (v_i: velocity of the prior centre, world, m/s)
+
+(exposure at `time − τ`, linearised). Used by `calibrate` (estimation) and
+`calibrate_mounting` (θ in the manifest's mounting terms).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from workers.pipeline.coregister_geometry import so3_log
+from workers.pipeline.pose import Pose
+
+__all__ = ["N_PARAMS", "design", "frame_motion"]
+
+#: number of calibration parameters θ
+N_PARAMS = 10
+
+
+def frame_motion(poses: Sequence[Pose], times: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity `(N, 3)` of the centres (world, m/s) and angular rate `(N, 3)` (camera frame of
+    each pose, rad/s) of a pose sequence in recording order, by central differences (one-sided
+    at the ends; zero where two stamps coincide or for a single pose)."""
+    n = len(poses)
+    v = np.zeros((n, 3))
+    w = np.zeros((n, 3))
+    t = np.asarray(times, dtype=np.float64)
+    for i in range(n):
+        a, b = max(i - 1, 0), min(i + 1, n - 1)
+        dt = t[b] - t[a]
+        if b == a or dt <= 0:
+            continue
+        v[i] = (poses[b].center - poses[a].center) / dt
+        Ri = poses[i].R_world_from_cam
+        # rate in the camera frame of pose i: R_a^T R_b = exp(Ω dt) expressed at i
+        w_a = so3_log(poses[a].R_world_from_cam.T @ poses[b].R_world_from_cam) / dt
+        w[i] = Ri.T @ poses[a].R_world_from_cam @ w_a
+    return v, w
+
+
+def design(pose: Pose, velocity: np.ndarray, rate: np.ndarray) -> np.ndarray:
+    """`A_i` `(6, 10)`: frame correction `δ_i = A_i θ` (module docstring)."""
+    A = np.zeros((6, N_PARAMS))
+    A[0:3, 0:3] = np.eye(3)
+    A[0:3, 9] = -rate
+    A[3:6, 3:6] = np.eye(3)
+    A[3:6, 6:9] = pose.R_world_from_cam
+    A[3:6, 9] = -velocity
+    return A
