@@ -36,6 +36,7 @@ from workers.pipeline.coregister import CoregisterOptions, calibrated_options, r
 from workers.pipeline.coregister_frame import pose_delta
 from workers.pipeline.georef import prior_poses
 from workers.pipeline.model_edges import building_wireframe, visible_wireframe
+from workers.pipeline.orient_sequence import SEQUENCE_PLATFORMS, orient_sequence
 from workers.pipeline.orientation_quality import edge_points
 from workers.pipeline.orientation_quality import reprojection_rms as quality_rms
 from workers.pipeline.pose import Pose
@@ -77,8 +78,8 @@ def scene(platform: str, frames: int, buildings: int, seed: int, errors: bool):
 
 
 def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bool = True) -> dict:
-    """Calibrate the sequence (as `citytherm run` does), then refine every cluster building over
-    every frame that sees it; errors per pair."""
+    """Calibrate the sequence and, for drives, orient it in blocks (as `citytherm run` does), then
+    refine every cluster building over every frame that sees it; errors per pair."""
     cam = res.manifest.camera
     caster = RayCaster(res.mesh)
     times = {i: f.time for i, f in enumerate(res.manifest.frames)}
@@ -98,6 +99,14 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bo
         accuracy = calibrated_accuracy(cal, prior=accuracy)
         if cal.accepted:
             options = calibrated_options(options)
+    seq = None
+    orient: dict = {"run": False}
+    if res.manifest.platform in SEQUENCE_PLATFORMS:
+        t0 = time.perf_counter()
+        frames = list(range(len(imgs)))
+        seq = orient_sequence(cam, caster, frames, src, dict(enumerate(priors)), times, accuracy)
+        orient = {"run": True, **seq.to_dict(),
+                  "ms_per_frame": round(1000 * (time.perf_counter() - t0) / len(frames), 1)}
     for b in res.buildings:
         if b.id not in res.truth.cluster:
             continue
@@ -112,7 +121,8 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bo
             i: visible_wireframe(wf, cam, res.truth.poses[i], caster, options.edges).n_edges for i in seen
         }
         t0 = time.perf_counter()
-        out = refine_building(cam, b, caster, seen, src, prior, accuracy, options, times)
+        out = refine_building(cam, b, caster, seen, src, prior, accuracy, options, times,
+                              seq.for_frames(seen) if seq is not None else None)
         per_frame_ms.append(1000 * (time.perf_counter() - t0) / len(seen))
         for i in seen:
             T = res.truth.poses[i]
@@ -126,7 +136,7 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bo
                 "rot_err_deg": float(np.degrees(np.linalg.norm(d[:3]))),
                 "visible_edges": edges_seen[i],
             })
-    return {"pairs": pairs, "per_frame_ms": per_frame_ms, "calibration": calib}
+    return {"pairs": pairs, "per_frame_ms": per_frame_ms, "calibration": calib, "orientation": orient}
 
 
 def _r(x, refined) -> float | None:
@@ -165,6 +175,7 @@ def summary(r: dict) -> dict:
     if r["per_frame_ms"]:
         out["ms_per_frame_and_building_median"] = round(float(np.median(r["per_frame_ms"])), 1)
     out["calibration"] = r["calibration"]
+    out["sequence_orientation"] = r["orientation"]
     return out
 
 

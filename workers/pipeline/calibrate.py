@@ -87,11 +87,11 @@ class CalibrationOptions:
 
     # at most this many frames (evenly spread over the sequence) take part
     max_frames: int = 40
-    # the start: `joint_fit` over the frames (tie points off: the frames are far apart in time;
-    # its support test is loose: one common correction does not align frames with white noise,
-    # the final test below, after the per-frame deviations are adjusted, decides)
+    # the start: `joint_fit` over the frames (its support test is loose: one common correction
+    # does not align frames with white noise; the final test below, after the per-frame
+    # deviations are adjusted, decides)
     joint: JointOptions = field(default_factory=lambda: JointOptions(
-        ties=False, max_frames=40, coarse_frames=20, max_correction_m=12.0, max_correction_deg=10.0,
+        max_frames=40, coarse_frames=20, max_correction_m=12.0, max_correction_deg=10.0,
         min_mean_support=0.2))
     edges: EdgeOptions = field(default_factory=EdgeOptions)
     fit: FrameFitOptions = field(default_factory=FrameFitOptions)
@@ -431,7 +431,7 @@ def _adjust(
                            f.feats, options.edges, fo, options.null_shift_px)
         if got is None:
             continue
-        support[f.index], null[f.index], inl = got
+        support[f.index], null[f.index], inl, _ = got
         chi2 += float(np.sum(inl**2))
         n += len(inl)
     s0 = max(1.0, chi2 / max(n - N_PARAMS, 1) / fo.sigma_edge_px**2)

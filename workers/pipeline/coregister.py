@@ -7,11 +7,17 @@ Out: `{frame: RefinedPose}` with status `"refined"` or `"prior"`.
 
 Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
 
+0b. when the sequence orientation ran (`orient_sequence`: tracks and a bundle adjustment of the
+   whole sequence in blocks, drives), the building's frames start from its poses, and one bundle
+   adjustment with the sequence's tracks, the building's own edges and the sequence poses as
+   priors (their covariances) lets the block shift to fit this building's model
+   (`coregister_block.refine_from_sequence`); when the building's edges reject that, the steps
+   below run from the priors.
+
 0. when the priors come from an accepted sequence calibration (`calibrate`; options from
    `calibrated_options`), the common error is already removed: a probe of frames decides whether
    frames orient alone (flights: step 1 per frame, then 3 and 4) or not (close-range drives: the
-   joint adjustment 2b with a narrow search and tie points); steps 2 and the wide searches are
-   skipped.
+   block orientation 2c from the calibrated priors); steps 2 and the wide searches are skipped.
 
 1. per frame (`coregister_frame`): the building's wireframe with hidden edges removed by ray
    casting through the whole scene (`model_edges`); Förstner points, LSD segments and their
@@ -32,10 +38,16 @@ Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
    distinct minimum, as on close-range drives): ONE common correction of all frames plus small
    per-frame deviations, adjusted from the stacked edge observations of every frame against the
    scene wireframe (an oriented-gradient search over common image shifts first). When accepted,
-   pass 1 is centred on each frame's jointly corrected pose, and a frame still at its prior
-   after steps 3 and 4 takes that pose with status `"refined"` when it lies in time between
-   frames whose edge support confirms the correction and the common correction's uncertainty
-   projected onto the building is ≤ `joint_max_sigma_px`.
+   the block orientation 2c starts from each frame's jointly corrected pose; if the block is
+   rejected, pass 1 is centred on those poses, and a frame still at its prior after steps 3 and
+   4 takes its jointly corrected pose with status `"refined"` when it lies in time between frames
+   whose edge support confirms the correction and the common correction's uncertainty projected
+   onto the building is ≤ `joint_max_sigma_px`.
+2c. **block orientation** (`coregister_block`, close-range drives): feature tracks over the
+   facades (`tracks`) and a bundle adjustment of all the building's frames with the track points
+   on the model's planes, the scene's model edges and the priors (`bundle`; Hoegner & Stilla,
+   method 2). A frame is `"refined"` when the block found the model and the frame's own
+   uncertainty, projected onto the building, is ≤ `block.max_sigma_px`.
 3. sequence level: corrections `δ = (ω_cam, dC_world)` of consecutive frames are strongly
    correlated (constant boresight error, slow GNSS drift). Frames that converged (found the
    building, whether or not alone they determine the pose) give each frame a **prediction**: the
@@ -69,13 +81,19 @@ import numpy as np
 
 from workers.pipeline.camera import Camera
 from workers.pipeline.citymodel import Building
+from workers.pipeline.coregister_block import (
+    BlockOptions,
+    UnitSequence,
+    refine_block,
+    refine_from_sequence,
+    sigma_px,
+)
 from workers.pipeline.coregister_frame import (
     FrameFit,
     FrameFitOptions,
     apply_delta,
     fit_frame,
     pose_delta,
-    project_jacobian,
 )
 from workers.pipeline.coregister_joint import JointOptions, joint_fit
 from workers.pipeline.coregister_sequence import apply_coarse, frame_noise_covariance, joint_coarse, predict
@@ -90,6 +108,7 @@ from workers.pipeline.model_edges import (
 )
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
+from workers.pipeline.results import RefinedPose
 from workers.pipeline.sequence import Accuracy, FrameSource
 
 __all__ = ["CoregisterOptions", "RefinedPose", "calibrated_options", "prior_information", "refine_building"]
@@ -155,9 +174,12 @@ class CoregisterOptions:
     # vertical corners)
     joint_fine: bool = True
     joint_max_sigma_px: float = 3.0
-    # after an accepted joint correction, refit every frame (passes 1, 2) from it
-    joint_refit: bool = True
     joint: JointOptions = field(default_factory=JointOptions)
+    # close-range drives: the building's frames oriented as one block (feature tracks and a
+    # bundle adjustment with the model: `coregister_block`) from the calibrated priors or from
+    # the joint correction; when the block is rejected, the frames go on one by one
+    block_orientation: bool = True
+    block: BlockOptions = field(default_factory=BlockOptions)
     # per-frame deviation of the correction from its neighbours' (white noise, vibration)
     frame_sigma_deg: float = 0.3
     frame_sigma_m: float = 0.3
@@ -200,17 +222,6 @@ def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = 0.3
                    attitude_sigma_floor_deg=accuracy_floor_deg)
 
 
-@dataclass(frozen=True, eq=False)
-class RefinedPose:
-    """The orientation of one frame against one building (`status` "refined" or "prior")."""
-
-    frame: int
-    pose: Pose
-    status: str
-    rms_px: float
-    matches: int
-
-
 def prior_information(prior: Pose, accuracy: Accuracy | None, options: CoregisterOptions) -> np.ndarray:
     """Information matrix `(6, 6)` of the prior on `δ = (ω_cam [rad], dC_world [m])`.
 
@@ -245,6 +256,7 @@ def refine_building(
     accuracy: Accuracy | None,
     options: CoregisterOptions = CoregisterOptions(),
     times: Mapping[int, float] | None = None,
+    sequence: UnitSequence | None = None,
 ) -> dict[int, RefinedPose]:
     """Refine the pose of every frame in `frames` against `building` (see the module docstring).
 
@@ -258,6 +270,8 @@ def refine_building(
         accuracy: a-priori standard deviations of the GNSS/INS solution (None: option defaults).
         options: all parameters.
         times: frame times in seconds for the sequence level (default: the frame index).
+        sequence: the sequence orientation's poses, covariances and tracks for `frames`
+            (`orient_sequence`): the building's own refinement starts from them (step 0b).
 
     Returns:
         frame index -> `RefinedPose`; `pose` is the prior when `status` is `"prior"`.
@@ -270,6 +284,11 @@ def refine_building(
     except WireframeError:
         return {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
     images = {i: frame_source.load(i) for i in frames}
+    if sequence is not None and options.block_orientation:
+        got, _, reason = refine_from_sequence(camera, wf, raycaster, frames, images, prior, sequence,
+                                              options.block, options.fit, options.edges, options.features)
+        if not reason:
+            return got
     infos = {i: prior_information(prior[i], accuracy, options) for i in frames}
     starts = dict(prior)
     fo = options.fit
@@ -291,9 +310,10 @@ def refine_building(
             fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
             coarse = options.frame_coarse_radius_px > 0
     t = {i: float(times[i]) if times is not None else float(i) for i in frames}
+    block = options.block_orientation and scene_wf is not None
     if options.calibrated:
         # calibrated priors: every frame on its own (flights), unless most frames of a probe do not
-        # determine their pose alone (close drives): then the joint adjustment with tie points
+        # determine their pose alone (close drives): then the block orientation
         n = min(len(frames), options.calibrated_probe_frames)
         probe = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n).round().astype(int))]
         ok = [fit_frame(camera, wf, raycaster, images[i], starts[i], infos[i], starts[i], fo, options.edges,
@@ -306,6 +326,10 @@ def refine_building(
                                 options)
                 out.update({i: r for i, r in scene.items() if r.status == "refined"})
             return out
+        if block:
+            got = _block(camera, wf, scene_wf, raycaster, frames, images, prior, starts, infos, options)
+            if got is not None:
+                return got
     joint = None
     if options.joint_fine and common is None and scene_wf is not None:
         jf = joint_fit(camera, scene_wf, raycaster, frames, images, prior, infos[frames[len(frames) // 2]],
@@ -315,12 +339,11 @@ def refine_building(
             starts = {i: apply_delta(prior[i], jf.frame_delta.get(i, jf.delta)) for i in frames}
             fo = replace(fo, coarse_radius_px=0.0)
             coarse = False
-    # frames related by tie points inside the joint adjustment are not refitted one by one (a
-    # single close-range frame does not determine its pose; the tie points did)
-    if joint is not None and (not options.joint_refit or joint.tie_pairs > 0):
-        out = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
-    else:
-        out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
+            if block:
+                got = _block(camera, wf, scene_wf, raycaster, frames, images, prior, starts, infos, options)
+                if got is not None:
+                    return got
+    out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
     rest = [i for i in frames if out[i].status == "prior"]
     # the scene is tried when it showed a common signal (joint coarse) or the building some frames
     hope = common is not None or len(rest) < len(frames)
@@ -337,7 +360,7 @@ def refine_building(
             inside = bool(ok_t) and min(ok_t) <= t[i] <= max(ok_t)
             if out[i].status == "refined" or not inside:
                 continue
-            if _sigma_px(camera, starts[i], wf.vertices, joint.covariance) <= options.joint_max_sigma_px:
+            if sigma_px(camera, starts[i], wf.vertices, joint.covariance) <= options.joint_max_sigma_px:
                 out[i] = RefinedPose(i, starts[i], "refined", float("nan"), 0)
     return out
 
@@ -381,7 +404,7 @@ def _orient(
         if f2.accepted:
             out[i] = _result(i, f2, prior[i])
             continue
-        sigma = _sigma_px(camera, centre, wf.vertices, pred.covariance)
+        sigma = sigma_px(camera, centre, wf.vertices, pred.covariance)
         if pred.neighbours >= options.inherit_min_neighbours and pred.both_sides and \
                 sigma <= options.inherit_max_sigma_px:
             out[i] = RefinedPose(i, centre, "refined", float("nan"), 0)
@@ -396,14 +419,15 @@ def _result(i: int, fit: FrameFit, prior: Pose) -> RefinedPose:
     return RefinedPose(i, prior, "prior", fit.rms_px, fit.matches)
 
 
-def _sigma_px(camera: Camera, pose: Pose, X: np.ndarray, cov: np.ndarray) -> float:
-    """RMS predicted reprojection uncertainty (px) of points `X` `(N, 3)` in the frame for a pose
-    with covariance `cov` `(6, 6)`."""
-    uv, z, J = project_jacobian(camera, pose, X)
-    inside = (z > 0.5) & camera.in_image(uv)
-    if not inside.any():
-        return float("inf")
-    return float(np.sqrt(np.mean(np.einsum("nki,ij,nkj->n", J[inside], cov, J[inside]))))
+def _block(camera: Camera, wf: Wireframe, scene_wf: Wireframe, raycaster: RayCaster, frames: list[int],
+           images: Mapping[int, np.ndarray], prior: Mapping[int, Pose], starts: Mapping[int, Pose],
+           infos: Mapping[int, np.ndarray], options: CoregisterOptions) -> dict[int, RefinedPose] | None:
+    """The block orientation of `frames` from `starts` (`coregister_block`), None when the block
+    as a whole is rejected."""
+    out, _, reason = refine_block(camera, wf, scene_wf, raycaster, frames, images, prior, starts,
+                                  infos[frames[len(frames) // 2]], options.block, options.fit, options.edges,
+                                  options.features)
+    return None if reason else out
 
 
 def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int],

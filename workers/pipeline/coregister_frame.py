@@ -393,13 +393,14 @@ def edge_support(
     edge_options: EdgeOptions,
     options: FrameFitOptions,
     null_shift_px: float = 0.0,
-) -> tuple[float, float, np.ndarray] | None:
+) -> tuple[float, float, np.ndarray, int] | None:
     """How well the wireframe projected with `pose` meets the frame's edges, at the final edge
     search radius: (support: class-weighted share of visible edge samples with an image edge
     within `support_px`; null support: the same share with the samples moved ±`null_shift_px`
     off their edges along the image normal, edge clutter and noise alone, 0 when
-    `null_shift_px` is 0; inlier edge offsets `(N,)` px). None with fewer than `min_samples`
-    visible samples."""
+    `null_shift_px` is 0; inlier edge offsets `(N,)` px; matched edges: edges with at least half
+    of their visible samples within `support_px`). None with fewer than `min_samples` visible
+    samples."""
     v = _visible(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
     if len(v.points) < options.min_samples:
         return None
@@ -407,7 +408,8 @@ def edge_support(
                                                 options.edge_radius_min_px, options.point_radius_min_px,
                                                 pose, np.zeros((6, 6)), options)
     wsum = max(float(np.sum(v.weight)), 1e-12)
-    support = float(np.sum(v.weight * (found & (np.abs(off) <= options.support_px)))) / wsum
+    near = found & (np.abs(off) <= options.support_px)
+    support = float(np.sum(v.weight * near)) / wsum
     null = 0.0
     if null_shift_px > 0:
         uv, _ = pose.project(camera, v.points)
@@ -416,7 +418,15 @@ def edge_support(
             o2, f2 = edge_search(feats, uv + sgn * null_shift_px * nrm, nrm, options.edge_radius_min_px,
                                  options)
             null += float(np.sum(v.weight * (f2 & (np.abs(o2) <= options.support_px)))) / wsum / 2.0
-    return support, null, off[w > 0]
+    return support, null, off[w > 0], _matched_edges(v.edge, near, len(wireframe.edges))
+
+
+def _matched_edges(edge: np.ndarray, near: np.ndarray, n_edges: int) -> int:
+    """Edges with at least half of their visible samples (`edge` `(N,)` edge index per sample)
+    matched (`near` `(N,)` bool)."""
+    seen = np.bincount(edge, minlength=n_edges)
+    hit = np.bincount(edge[near], minlength=n_edges)
+    return int(np.sum((seen > 0) & (hit >= 0.5 * seen)))
 
 
 def _evaluate(
@@ -447,8 +457,7 @@ def _evaluate(
     inl_c = wc > 0
     res = np.concatenate([off[inl_e], np.linalg.norm(rc[inl_c], axis=1)])
     rms = float(np.sqrt(np.mean(res**2))) if len(res) else float("inf")
-    n_edges = int(np.sum(np.bincount(vis.edge[near], minlength=len(wireframe.edges))
-                         >= 0.5 * np.maximum(np.bincount(vis.edge, minlength=len(wireframe.edges)), 1)))
+    n_edges = _matched_edges(vis.edge, near, len(wireframe.edges))
     matches = int(inl_c.sum()) + n_edges
     # a-posteriori variance factor (unit weight), never below 1
     chi2 = float(np.sum(w_e * off**2) * sig_e2 / max(options.edge_sample_weight, 1e-9))

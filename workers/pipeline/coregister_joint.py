@@ -51,14 +51,6 @@ from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeature
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
-from workers.pipeline.tiepoints import (
-    TiePair,
-    TiePointOptions,
-    model_points,
-    sampson_jacobian,
-    tie_pairs,
-    transfer_jacobian,
-)
 
 __all__ = ["JointFit", "JointOptions", "joint_fit"]
 
@@ -111,14 +103,6 @@ class JointOptions:
     # vibration): standard deviations of `ε_i`
     frame_sigma_deg: float = 0.3
     frame_sigma_m: float = 0.3
-    # relative orientation of consecutive frames from image-to-image tie points (epipolar Sampson
-    # distances, σ and Huber threshold in pixels) in the final adjustment over all frames
-    ties: bool = True
-    # ... transferred over the model's planes (else epipolar only)
-    tie_model: bool = True
-    tie_sigma_px: float = 1.0
-    tie_huber_px: float = 1.5
-    tiepoints: TiePointOptions = field(default_factory=TiePointOptions)
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,8 +120,6 @@ class JointFit:
         accepted: the acceptance tests passed.
         reason: why not ("" when accepted).
         frame_delta: `{frame: (6,)}` correction `δ + ε_i` of each frame that took part.
-        tie_pairs: frame pairs whose tie points took part (their relative orientation is in
-            `frame_delta`).
     """
 
     delta: np.ndarray
@@ -147,7 +129,6 @@ class JointFit:
     accepted: bool = False
     reason: str = ""
     frame_delta: dict[int, np.ndarray] = field(default_factory=dict)
-    tie_pairs: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -179,7 +160,6 @@ def joint_fit(
                                          .round().astype(int))] if frames else []
     margin = options.coarse_radius_px + options.radius_start_px + fit_options.roi_margin_px
     data: list[_Frame] = []
-    boxes: dict[int, tuple[int, int, int, int]] = {}
     for i in pick:
         vis = _visible(wireframe, camera, prior[i], raycaster, edge_options, fit_options.max_samples)
         if len(vis.points) < fit_options.min_samples:
@@ -192,9 +172,6 @@ def joint_fit(
         except FeatureError:
             continue
         data.append(_Frame(i, prior[i], feats))
-        box = frame_box(camera, prior[i], vis, options.tiepoints.window_px)
-        if box is not None:
-            boxes[i] = box
     if len(data) < options.min_supported_frames:
         return JointFit(delta=np.zeros(6), reason="too few frames see model edges")
     starts = [np.zeros(6)]
@@ -208,14 +185,8 @@ def joint_fit(
         fits = [_fine(camera, wireframe, raycaster, verify, d0, prior_info, options.verify_iterations,
                       options, fit_options, edge_options) for d0 in starts]
         best = max(fits, key=lambda f: f.mean_support)
-    order = [fr.index for fr in data]
-    ties = []
-    if options.ties:
-        # tracking starts from the positions predicted with the jointly corrected priors
-        guess = {fr.index: apply_delta(fr.prior, best.delta) for fr in data}
-        ties = tie_pairs(camera, images, order, boxes, options.tiepoints, raycaster, guess)
     fit = _fine(camera, wireframe, raycaster, data, best.delta, prior_info, options.iterations, options,
-                fit_options, edge_options, radius_start=fit_options.edge_radius_start_px / 2, ties=ties)
+                fit_options, edge_options, radius_start=fit_options.edge_radius_start_px / 2)
     supported = sum(s >= fit_options.min_support for s in fit.support.values())
     reason = ""
     if fit.mean_support < options.min_mean_support:
@@ -225,7 +196,7 @@ def joint_fit(
     elif np.linalg.norm(fit.delta[3:]) > options.max_correction_m or \
             np.degrees(np.linalg.norm(fit.delta[:3])) > options.max_correction_deg:
         reason = "correction beyond the plausible range"
-    return replace(fit, accepted=not reason, reason=reason, tie_pairs=len(ties))
+    return replace(fit, accepted=not reason, reason=reason)
 
 
 def _gradient(img: np.ndarray, ds: int, sigma: float) -> tuple[np.ndarray, float]:
@@ -343,7 +314,7 @@ def _coarse_candidates(
 def _fine(
     camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame], delta0: np.ndarray,
     prior_info: np.ndarray, iterations: int, options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
-    radius_start: float | None = None, ties: Sequence[TiePair] = (),
+    radius_start: float | None = None,
 ) -> JointFit:
     """Gauss-Newton of the common correction `δ` and the per-frame deviations `ε_i` (information
     `F` from `frame_sigma_*`) from `delta0` over the frames of `data`: frame i is corrected by
@@ -374,39 +345,28 @@ def _fine(
                                                fo.point_radius_min_px, poses[fr.index], zero6, fo_it)
             Hc += Hi
             blocks[fr.index] = (Hi, gi)
-        if ties:
-            got = _dense_step(camera, raycaster, data, delta, x, poses, blocks, prior_info, F, ties, options)
-            if got is None:
-                break
-            dd, dxs = got
-            delta = delta + dd
-            big = 0.0
-            for fr in data:
-                x[fr.index] = x[fr.index] + dxs[fr.index]
-                big = max(big, float(np.linalg.norm(dxs[fr.index][3:])))
-        else:
-            S = prior_info.copy()
-            b = -prior_info @ delta
-            parts = {}
-            for fr in data:
-                Hi, gi = blocks[fr.index]
-                B = np.linalg.inv(Hi + F)
-                c = gi - F @ (x[fr.index] - delta)
-                parts[fr.index] = (B, c)
-                S += F - F @ B @ F
-                b += F @ (x[fr.index] - delta) + F @ B @ c
-            try:
-                dd = np.linalg.solve(S, b)
-            except np.linalg.LinAlgError:
-                break
-            dd = _bounded(dd)
-            delta = delta + dd
-            big = 0.0
-            for fr in data:
-                B, c = parts[fr.index]
-                dx = _bounded(B @ (c + F @ dd))
-                x[fr.index] = x[fr.index] + dx
-                big = max(big, float(np.linalg.norm(dx[3:])))
+        S = prior_info.copy()
+        b = -prior_info @ delta
+        parts = {}
+        for fr in data:
+            Hi, gi = blocks[fr.index]
+            B = np.linalg.inv(Hi + F)
+            c = gi - F @ (x[fr.index] - delta)
+            parts[fr.index] = (B, c)
+            S += F - F @ B @ F
+            b += F @ (x[fr.index] - delta) + F @ B @ c
+        try:
+            dd = np.linalg.solve(S, b)
+        except np.linalg.LinAlgError:
+            break
+        dd = _bounded(dd)
+        delta = delta + dd
+        big = 0.0
+        for fr in data:
+            B, c = parts[fr.index]
+            dx = _bounded(B @ (c + F @ dd))
+            x[fr.index] = x[fr.index] + dx
+            big = max(big, float(np.linalg.norm(dx[3:])))
         small = np.linalg.norm(dd[:3]) < 5e-5 and np.linalg.norm(dd[3:]) < 5e-3 and big < 5e-3
         if R_e <= fo.edge_radius_min_px + 1e-9 and small:
             break
@@ -416,7 +376,7 @@ def _fine(
         got = edge_support(camera, wireframe, raycaster, apply_delta(fr.prior, x[fr.index]), fr.feats, eo, fo)
         if got is None:
             continue
-        support[fr.index], _, inl = got
+        support[fr.index], _, inl, _ = got
         chi2 += float(np.sum(inl**2))
         n += len(inl)
     s0 = max(1.0, chi2 / max(n - 6, 1) / fo.sigma_edge_px**2)
@@ -434,54 +394,3 @@ def _bounded(d: np.ndarray) -> np.ndarray:
     d[:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(d[:3]), 1e-12))
     d[3:] *= min(1.0, 2.0 / max(np.linalg.norm(d[3:]), 1e-12))
     return d
-
-
-def _dense_step(
-    camera: Camera, raycaster: RayCaster, data: list[_Frame], delta: np.ndarray, x: dict[int, np.ndarray],
-    poses: Mapping[int, Pose], blocks: Mapping[int, tuple[np.ndarray, np.ndarray]], prior_info: np.ndarray,
-    F: np.ndarray,
-    ties: Sequence[TiePair], options: JointOptions,
-) -> tuple[np.ndarray, dict[int, np.ndarray]] | None:
-    """One Gauss-Newton step of `(δ, x_1 … x_n)` with the tie points coupling frames: the normal
-    equations are dense `6 (n + 1)` square (n ≤ `max_frames`). Returns `(dδ (6,), {frame: dx (6,)})`
-    (bounded), or None when singular."""
-    pos = {fr.index: 6 * (k + 1) for k, fr in enumerate(data)}
-    n = 6 * (len(data) + 1)
-    N = np.zeros((n, n))
-    b = np.zeros(n)
-    N[:6, :6] += prior_info
-    b[:6] -= prior_info @ delta
-    for fr in data:
-        p = pos[fr.index]
-        Hi, gi = blocks[fr.index]
-        e = x[fr.index] - delta
-        N[:6, :6] += F
-        N[p:p + 6, p:p + 6] += Hi + F
-        N[:6, p:p + 6] -= F
-        N[p:p + 6, :6] -= F
-        b[:6] += F @ e
-        b[p:p + 6] += gi - F @ e
-    w0 = options.tie_sigma_px ** -2
-    for tp in ties:
-        if tp.a not in pos or tp.b not in pos:
-            continue
-        idx = np.r_[pos[tp.a]:pos[tp.a] + 6, pos[tp.b]:pos[tp.b] + 6]
-        if options.tie_model:
-            X0, nrm, ok = model_points(raycaster, poses[tp.a], tp.xa)
-            if ok.sum() < options.tiepoints.min_points // 2:
-                continue
-            r2, J2 = transfer_jacobian(camera, poses[tp.a], poses[tp.b], tp.xa[ok], tp.xb[ok], X0[ok],
-                                       nrm[ok])
-            a = np.repeat(np.linalg.norm(r2, axis=1), 2)
-            r, J = r2.reshape(-1), J2.reshape(-1, 12)
-        else:
-            r, J = sampson_jacobian(camera, poses[tp.a], poses[tp.b], tp.xa, tp.xb)
-            a = np.abs(r)
-        w = w0 * np.where(a <= options.tie_huber_px, 1.0, options.tie_huber_px / np.maximum(a, 1e-12))
-        N[np.ix_(idx, idx)] += J.T @ (J * w[:, None])
-        b[idx] -= J.T @ (w * r)
-    try:
-        d = np.linalg.solve(N, b)
-    except np.linalg.LinAlgError:
-        return None
-    return _bounded(d[:6]), {fr.index: _bounded(d[pos[fr.index]:pos[fr.index] + 6]) for fr in data}

@@ -17,6 +17,17 @@ from workers.pipeline.sequence import Radiometry
 
 
 @dataclass(frozen=True, eq=False)
+class RefinedPose:
+    """The orientation of one frame against one building (`status` "refined" or "prior")."""
+
+    frame: int
+    pose: Pose
+    status: str
+    rms_px: float
+    matches: int
+
+
+@dataclass(frozen=True, eq=False)
 class TextureTile:
     """One atlas tile image.
 

@@ -1,0 +1,413 @@
+"""Bundle adjustment of a block of frames against the building model (tie points, planes, edges).
+
+In: a `Camera`, frames with their images `(H, W)` float32, start poses and GNSS/INS priors
+(world = model CRS) with their information matrices, feature `Tracks` on the model's surfaces
+(`tracks`), a wireframe and the `RayCaster` of the scene. Out: `BundleResult`: a refined pose per
+frame with its covariance, residual figures and tie counts, the adjusted track points.
+
+Why (Hoegner & Stilla, method 2, with the model edges of Avbelj et al. 2012): at close range a
+single TIR frame of a drive rarely shows enough model edges to fix its pose (a vertical corner,
+no eave, no ground line), and its GNSS/INS pose is decimetres off from frame to frame. Facade
+points tracked through the sequence tie the frames together to a fraction of a pixel; the points
+lying on the model's planes, the model's edges wherever a frame sees them, and the priors place
+the tied block in the model.
+
+Unknowns: per frame a correction `δ_f = (ω_cam, dC_world)` of its pose
+(`coregister_geometry.apply_delta`), per track its world point `X_t` (3). Observations:
+
+- tie points: image positions of every track observation, σ `tie_sigma_px`, Huber weights;
+- planes: the distance of `X_t` from the plane of the model polygon its track lies on, σ
+  `plane_sigma_m`, re-weighted by that distance each iteration (Tukey: points off the model, on
+  trees, cars or recessed windows, lose their weight);
+- model edges: the edge-normal distances of every visible wireframe sample to the strongest
+  image edge along the normal (`coregister_frame._normal_equations`, Tukey weights, search
+  radius shrinking from `edge_radius_start_px`), weighted by `edge_weight`;
+- priors: the GNSS/INS errors of a block's frames are not independent (Kolecki et al.; the
+  calibration leaves a common error of decimetres, the white noise and vibration vary from frame
+  to frame). Hence one common correction `c` (6) of the block with a prior of zero
+  (`common_info`, the calibrated accuracy), and per frame `δ_total,f − c = 0` with the
+  per-frame information (`frame_info`, the white part). Independent priors of a few decimetres
+  each would pin a block of forty frames to its common error as if it were known to centimetres.
+
+Each Gauss-Newton step eliminates the points (3 × 3 blocks, Schur complement) and solves the
+reduced `6 (n + 1) × 6 (n + 1)` system of the frames and the common correction. After
+convergence, tie observations beyond `outlier_px` are dropped and the adjustment continues. The
+frame covariances are the diagonal blocks of the reduced system's inverse, scaled by the
+a-posteriori variance factor (≥ 1).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.coregister_frame import (
+    FrameFitOptions,
+    _normal_equations,
+    _visible,
+    edge_support,
+    frame_box,
+)
+from workers.pipeline.coregister_geometry import apply_delta, pose_delta, project_jacobian
+from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
+from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+from workers.pipeline.tracks import Tracks
+
+__all__ = ["BundleOptions", "BundleResult", "bundle_adjust", "track_pairs"]
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    """Parameters of the bundle adjustment (pixels, metres)."""
+
+    # tie points: standard deviation, Huber threshold (both px); observations beyond
+    # `outlier_px` after convergence are dropped
+    tie_sigma_px: float = 0.15
+    tie_huber_px: float = 0.3
+    outlier_px: float = 2.0
+    # planes: standard deviation and the Tukey constant of the distance re-weighting (m)
+    plane_sigma_m: float = 0.05
+    plane_tukey_m: float = 0.5
+    # model edges: on/off, weight of the edge normal equations, search radius at the start
+    # (shrinks by `radius_decay` to the frame fit's minimum), visibility recomputed every n-th
+    # iteration
+    edges: bool = True
+    edge_weight: float = 1.0
+    edge_radius_start_px: float = 8.0
+    radius_decay: float = 0.75
+    revisibility_every: int = 4
+    # Gauss-Newton iterations before and after the outlier removal; Levenberg damping (a share of
+    # the diagonal: beware, it also slows the weak directions down, a tilt traded against a height
+    # that only a few inclined edges see; the steps are bounded anyway, `_bounded`)
+    iterations: int = 10
+    polish_iterations: int = 4
+    damping: float = 0.0
+    # a phase has converged when no frame moves by more than this (metres; rotations as the
+    # motion they cause at 10 m)
+    converged_m: float = 5e-4
+    # the final edge support is compared with the support of samples moved this far off their
+    # edges (clutter and noise alone)
+    null_shift_px: float = 6.0
+
+
+@dataclass(frozen=True, eq=False)
+class BundleResult:
+    """Result of `bundle_adjust`.
+
+    Attributes:
+        poses: `{frame: Pose}` refined.
+        covariance: `{frame: (6, 6)}` of `(ω_cam [rad], dC_world [m])`, variance factor applied.
+        ties: `{frame: inlier tie observations}`.
+        tie_rms_px: `{frame: RMS of its inlier tie residuals}` (NaN without ties).
+        edge_rms_px, edge_support, null_support, matched_edges: per frame that sees model edges,
+            at its refined pose (`coregister_frame.edge_support`, null shift `null_shift_px`):
+            RMS of the inlier edge offsets, support, null support, matched model edges.
+        points: `(T, 3)` adjusted track points (world).
+        inlier: `(M,)` bool per tie observation of the tracks (of the block's frames).
+        sigma0: a-posteriori standard deviation of unit weight of the ties (≥ 1 is applied to
+            `covariance`).
+    """
+
+    poses: dict[int, Pose]
+    covariance: dict[int, np.ndarray]
+    ties: dict[int, int]
+    tie_rms_px: dict[int, float]
+    edge_rms_px: dict[int, float]
+    edge_support: dict[int, float]
+    null_support: dict[int, float]
+    matched_edges: dict[int, int]
+    points: np.ndarray
+    inlier: np.ndarray
+    sigma0: float = 1.0
+
+
+def track_pairs(track: np.ndarray, n_tracks: int) -> tuple[np.ndarray, np.ndarray]:
+    """All ordered pairs `(i, j)` of observations of the same track, `i` and `j` `(P,)` indices
+    into `track` `(M,)` (pairs with i == j included).
+
+    >>> i, j = track_pairs(np.array([0, 1, 0]), 2)
+    >>> sorted(zip(i.tolist(), j.tolist()))
+    [(0, 0), (0, 2), (1, 1), (2, 0), (2, 2)]
+    """
+    order = np.argsort(track, kind="stable")
+    ts = track[order]
+    counts = np.bincount(ts, minlength=n_tracks)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rep = counts[ts]
+    first = np.repeat(np.arange(len(ts)), rep)
+    offs = np.arange(int(rep.sum())) - np.repeat(np.cumsum(rep) - rep, rep)
+    second = starts[ts[first]] + offs
+    return order[first], order[second]
+
+
+@dataclass(eq=False)
+class _EdgeFrame:
+    feats: ImageFeatures
+    vis: VisibleWireframe | None = None
+
+
+def _edge_data(camera: Camera, wireframe: Wireframe, raycaster: RayCaster, frames: Sequence[int],
+               images: Mapping[int, np.ndarray], poses: Mapping[int, Pose], margin: float,
+               fo: FrameFitOptions, eo: EdgeOptions, feature_options: FeatureOptions,
+               ) -> dict[int, _EdgeFrame]:
+    """Image gradients around the projected wireframe of every frame that sees one."""
+    out = {}
+    for f in frames:
+        vis = _visible(wireframe, camera, poses[f], raycaster, eo, fo.max_samples)
+        if len(vis.points) < fo.min_samples:
+            continue
+        roi = frame_box(camera, poses[f], vis, margin)
+        if roi is None:
+            continue
+        try:
+            feats = extract_features(images[f], feature_options, roi, points=False)
+        except FeatureError:
+            continue
+        out[f] = _EdgeFrame(feats, vis)
+    return out
+
+
+def bundle_adjust(
+    camera: Camera,
+    frames: Sequence[int],
+    images: Mapping[int, np.ndarray],
+    start: Mapping[int, Pose],
+    prior: Mapping[int, Pose],
+    frame_info: Mapping[int, np.ndarray],
+    common_info: np.ndarray | None,
+    tracks: Tracks,
+    wireframe: Wireframe | None,
+    raycaster: RayCaster,
+    options: BundleOptions = BundleOptions(),
+    fit_options: FrameFitOptions = FrameFitOptions(),
+    edge_options: EdgeOptions = EdgeOptions(),
+    feature_options: FeatureOptions = FeatureOptions(),
+) -> BundleResult:
+    """Adjust the poses of `frames` from `start` (see the module docstring).
+
+    Args:
+        camera: interior orientation.
+        frames: frame indices of the block.
+        images: `(H, W)` float32 physical values per frame (model edges).
+        start: start pose per frame.
+        prior: GNSS/INS (calibrated) prior pose per frame.
+        frame_info: `(6, 6)` information of each frame's own deviation from the block's common
+            prior error (rad⁻², m⁻²).
+        common_info: `(6, 6)` information of the zero prior of the common error; None: no
+            common error (each frame's prior is independent).
+        tracks: tie-point tracks on the model's surfaces (observations of other frames ignored).
+        wireframe: model edges to observe (None: no edge observations).
+        raycaster: the scene (hidden-edge removal).
+        options, fit_options, edge_options, feature_options: parameters.
+    """
+    frames = list(frames)
+    slot = {f: k for k, f in enumerate(frames)}
+    n = len(frames)
+    poses = {f: start[f] for f in frames}
+    m_obs = np.isin(tracks.frame, frames)
+    t_obs = tracks.track[m_obs]
+    f_obs = np.array([slot[f] for f in tracks.frame[m_obs]], dtype=int)
+    uv_obs = tracks.uv[m_obs]
+    X = tracks.point.copy()
+    nrm = tracks.normal
+    d_plane = np.sum(nrm * tracks.point, axis=1)
+    inl = np.ones(len(t_obs), bool)
+    edges: dict[int, _EdgeFrame] = {}
+    if options.edges and wireframe is not None:
+        margin = options.edge_radius_start_px + fit_options.roi_margin_px
+        edges = _edge_data(camera, wireframe, raycaster, frames, images, poses, margin, fit_options,
+                           edge_options, feature_options)
+    w_tie = options.tie_sigma_px ** -2
+    w_plane = options.plane_sigma_m ** -2
+    nc = 0 if common_info is None else 1  # the common correction's block
+    S = np.zeros((6 * (n + nc), 6 * (n + nc)))
+    common = np.zeros(6)
+    polish, k_phase = False, 0
+    for it in range(options.iterations + options.polish_iterations):
+        R_e = max(fit_options.edge_radius_min_px, options.edge_radius_start_px * options.radius_decay ** it)
+        S, b, V_inv, Wt, bt = _normal_system(camera, frames, poses, prior, frame_info, common_info, common,
+                                             f_obs[inl], t_obs[inl], uv_obs[inl], X, nrm, d_plane, w_tie,
+                                             w_plane, options)
+        if edges:
+            fo_it = replace(fit_options, tukey_min_px=max(fit_options.tukey_min_px, R_e / 3))
+            none = np.zeros((0, 2))
+            zero6 = np.zeros((6, 6))
+            for f, ed in edges.items():
+                if it % options.revisibility_every == 0 and it > 0:
+                    ed.vis = _visible(wireframe, camera, poses[f], raycaster, edge_options,  # type: ignore[arg-type]
+                                      fit_options.max_samples)
+                if ed.vis is None or len(ed.vis.points) < fit_options.min_samples:
+                    continue
+                He, ge, *_ = _normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
+                                               fit_options.point_radius_min_px, poses[f], zero6, fo_it)
+                k = 6 * slot[f]
+                S[k:k + 6, k:k + 6] += options.edge_weight * He
+                b[k:k + 6] += options.edge_weight * ge
+        S_d = S + options.damping * np.diag(np.diag(S))
+        try:
+            c = cho_factor(S_d)
+        except np.linalg.LinAlgError:
+            break
+        dx = cho_solve(c, b)
+        big = 0.0
+        for f in frames:
+            k = 6 * slot[f]
+            step = _bounded(dx[k:k + 6])
+            poses[f] = apply_delta(poses[f], step)
+            big = max(big, float(np.linalg.norm(step[3:])), float(np.linalg.norm(step[:3])) * 10.0)
+        if nc:
+            common = common + dx[6 * n:]
+        # back-substitution of the points: ΔX_t = V_t⁻¹ (b_t − Σ W_oᵀ Δ_f(o))
+        if len(Wt):
+            fi, ti = f_obs[inl], t_obs[inl]
+            dpose = dx[:6 * n].reshape(n, 6)[fi]
+            rhs = bt.copy()
+            np.add.at(rhs, ti, -np.einsum("oij,oi->oj", Wt, dpose))
+            X = X + np.einsum("tij,tj->ti", V_inv, rhs)
+        # converged: steps below `converged_m` (rotations as metres at 10 m), the edge search at its
+        # final radius; then the outliers go and the polish runs to convergence
+        k_phase += 1
+        done = big < options.converged_m and R_e <= fit_options.edge_radius_min_px + 1e-9
+        if polish and (done or k_phase >= options.polish_iterations):
+            break
+        if not polish and (done or k_phase >= options.iterations):
+            polish, k_phase = True, 0
+            r = _residuals(camera, poses, frames, f_obs, t_obs, uv_obs, X)
+            inl = np.linalg.norm(r, axis=1) <= options.outlier_px
+    # figures at the final poses
+    r = _residuals(camera, poses, frames, f_obs, t_obs, uv_obs, X)
+    e = np.linalg.norm(r, axis=1)
+    inl = e <= options.outlier_px
+    ties = {f: int(np.sum(inl & (f_obs == slot[f]))) for f in frames}
+    tie_rms = {f: float(np.sqrt(np.mean(e[inl & (f_obs == slot[f])] ** 2))) if ties[f] else float("nan")
+               for f in frames}
+    edge_rms: dict[int, float] = {}
+    support: dict[int, float] = {}
+    null: dict[int, float] = {}
+    matched: dict[int, int] = {}
+    for f, ed in edges.items():
+        got = edge_support(camera, wireframe, raycaster, poses[f], ed.feats, edge_options,  # type: ignore[arg-type]
+                           fit_options, options.null_shift_px)
+        if got is None:
+            continue
+        support[f], null[f], off, matched[f] = got
+        edge_rms[f] = float(np.sqrt(np.mean(off**2))) if len(off) else float("nan")
+    chi2 = float(np.sum((e[inl] / options.tie_sigma_px) ** 2))
+    # redundancy of the ties: 2 per observation, minus 2 per point (3 coordinates, 1 plane)
+    dof = 2 * int(inl.sum()) - 2 * int(np.unique(t_obs[inl]).size)
+    sigma0 = float(np.sqrt(chi2 / dof)) if dof > 0 else 1.0
+    try:
+        Sinv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        Sinv = np.full_like(S, np.nan)
+    s2 = max(1.0, sigma0**2)
+    cov = {f: Sinv[6 * slot[f]:6 * slot[f] + 6, 6 * slot[f]:6 * slot[f] + 6] * s2 for f in frames}
+    return BundleResult(poses=poses, covariance=cov, ties=ties, tie_rms_px=tie_rms, edge_rms_px=edge_rms,
+                        edge_support=support, null_support=null, matched_edges=matched, points=X, inlier=inl,
+                        sigma0=sigma0)
+
+
+def _bounded(d: np.ndarray) -> np.ndarray:
+    """A Gauss-Newton step `(6,)` bounded to 2° and 1 m (linearisation)."""
+    d = d.copy()
+    d[:3] *= min(1.0, np.radians(2.0) / max(np.linalg.norm(d[:3]), 1e-12))
+    d[3:] *= min(1.0, 1.0 / max(np.linalg.norm(d[3:]), 1e-12))
+    return d
+
+
+def _residuals(camera: Camera, poses: Mapping[int, Pose], frames: Sequence[int], f_obs: np.ndarray,
+               t_obs: np.ndarray, uv_obs: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Tie residuals `(M, 2)` px (observed − projected); NaN-free (behind: large)."""
+    r = np.full((len(f_obs), 2), 1e6)
+    for k, f in enumerate(frames):
+        m = f_obs == k
+        if m.any():
+            uv, z = poses[f].project(camera, X[t_obs[m]])
+            rr = uv_obs[m] - uv
+            rr[~(np.isfinite(rr).all(axis=1) & (z > 0))] = 1e6
+            r[m] = rr
+    return r
+
+
+def _normal_system(
+    camera: Camera, frames: Sequence[int], poses: Mapping[int, Pose], prior: Mapping[int, Pose],
+    frame_info: Mapping[int, np.ndarray], common_info: np.ndarray | None, common: np.ndarray,
+    f_obs: np.ndarray, t_obs: np.ndarray, uv_obs: np.ndarray, X: np.ndarray, nrm: np.ndarray,
+    d_plane: np.ndarray, w_tie: float, w_plane: float, options: BundleOptions,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Reduced normal equations of the frames and the common correction (last block, when
+    `common_info` is given; points eliminated).
+
+    Returns (S `(6(n+c), 6(n+c))`, b `(6(n+c),)` (c = 1 with a common correction, else 0),
+    V⁻¹ `(T, 3, 3)`, W `(M, 6, 3)` per observation, b_t `(T, 3)`)."""
+    n = len(frames)
+    T = len(X)
+    M = len(f_obs)
+    U = np.zeros((n, 6, 6))
+    bu = np.zeros((n, 6))
+    Scc = np.zeros((6, 6)) if common_info is None else common_info.copy()
+    bc = -Scc @ common
+    Sfc = np.zeros((n, 6, 6))
+    for k, f in enumerate(frames):
+        # ρ_f = δ_total,f − c, ∂ρ/∂δ_f = I, ∂ρ/∂c = −I
+        info = frame_info[f]
+        rho = pose_delta(prior[f], poses[f]) - common
+        U[k] += info
+        bu[k] -= info @ rho
+        Sfc[k] -= info
+        Scc += info
+        bc += info @ rho
+    V = np.zeros((T, 3, 3))
+    bt = np.zeros((T, 3))
+    # planes: r = d − n·X, weight re-weighted by the distance (Tukey)
+    rp = d_plane - np.sum(nrm * X, axis=1)
+    x = np.abs(rp) / options.plane_tukey_m
+    wp = w_plane * np.where(x < 1, (1 - x * x) ** 2, 0.0)
+    V += wp[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+    bt += (wp * rp)[:, None] * nrm
+    # a weak prior on every point keeps V invertible (a point seen from nearly one direction)
+    V += np.eye(3)[None] * 1e-6
+    Wt = np.zeros((M, 6, 3))
+    if M:
+        Jf = np.zeros((M, 2, 6))
+        e = np.zeros((M, 2))
+        for k, f in enumerate(frames):
+            m = np.flatnonzero(f_obs == k)
+            if len(m) == 0:
+                continue
+            uv, _, J = project_jacobian(camera, poses[f], X[t_obs[m]])
+            Jf[m] = J
+            e[m] = uv_obs[m] - uv
+        e = np.nan_to_num(e, nan=0.0)
+        Jx = -Jf[:, :, 3:]
+        a = np.linalg.norm(e, axis=1)
+        w = w_tie * np.where(a <= options.tie_huber_px, 1.0, options.tie_huber_px / np.maximum(a, 1e-12))
+        JfW = Jf * w[:, None, None]
+        np.add.at(U, f_obs, np.einsum("oki,okj->oij", JfW, Jf))
+        np.add.at(bu, f_obs, np.einsum("oki,ok->oi", JfW, e))
+        np.add.at(V, t_obs, np.einsum("oki,okj->oij", Jx * w[:, None, None], Jx))
+        np.add.at(bt, t_obs, np.einsum("oki,ok->oi", Jx * w[:, None, None], e))
+        Wt = np.einsum("oki,okj->oij", JfW, Jx)
+    V_inv = np.linalg.inv(V)
+    S4 = np.zeros((n, n, 6, 6))
+    S4[np.arange(n), np.arange(n)] = U
+    b = bu.copy()
+    if M:
+        Y = np.einsum("oij,ojk->oik", Wt, V_inv[t_obs])  # W V⁻¹  (M, 6, 3)
+        i, j = track_pairs(t_obs, T)
+        np.add.at(S4, (f_obs[i], f_obs[j]), -np.einsum("pik,pjk->pij", Y[i], Wt[j]))
+        np.add.at(b, f_obs, -np.einsum("oik,ok->oi", Y, bt[t_obs]))
+    if common_info is None:
+        return S4.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n), b.reshape(-1), V_inv, Wt, bt
+    S = np.zeros((6 * (n + 1), 6 * (n + 1)))
+    S[:6 * n, :6 * n] = S4.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
+    S[:6 * n, 6 * n:] = Sfc.reshape(6 * n, 6)
+    S[6 * n:, :6 * n] = Sfc.reshape(6 * n, 6).T
+    S[6 * n:, 6 * n:] = Scc
+    return S, np.concatenate([b.reshape(-1), bc]), V_inv, Wt, bt

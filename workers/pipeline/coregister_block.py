@@ -1,0 +1,314 @@
+"""Block orientation of a building's frames: feature tracks and a bundle adjustment with the model.
+
+In: `Camera`, the building's wireframe and the wireframe of its scene (building and neighbours),
+the `RayCaster` of the scene, the building's frames (recording order) with their images, prior
+poses (GNSS/INS, calibrated when a sequence calibration was accepted) and start poses, the
+prior's information matrix, options. Out: `{frame: RefinedPose}`.
+
+Why: a close-range drive frame rarely fixes its own pose (one vertical corner, no eave, no
+ground line) while its GNSS/INS position is decimetres off from frame to frame. Points tracked
+over the facades (`tracks`) tie the frames together; the bundle adjustment (`bundle`) places the
+tied block in the model with the edges of the scene wireframe, the points' model planes and the
+priors (a common error of the block plus each frame's own noise).
+
+The common error's prior is the prior's accuracy floored at `common_sigma_floor_*`: a sequence
+calibration gives a good start, but along one street a pan of degrees and a lateral offset are
+nearly interchangeable for it (one 2.4 s drive calibrated to 4° of pan with 1.3 m of offset,
+accepted with a claimed σ of 0.2°), and a tight common prior would hold the block there. When
+the ties of the adjusted block fit worse than their σ, the tracks are made again from its poses
+(their predictions and plane-induced warps came from poses too far off) and the block is
+adjusted once more.
+
+Acceptance: the block must have found the model: the mean edge support of its frames at the
+refined poses reaches `min_mean_support` and exceeds the null support (samples moved off their
+edges) by `min_support_gain`, and the common correction is plausible; otherwise every frame keeps
+its prior. Then a frame is `"refined"` when it is observed (at least `min_ties` tie points, or
+`fit.min_edge_inliers` edge samples) with residuals below `fit.max_rms_px`, and the predicted
+uncertainty of the building's vertices in it (the frame's covariance from the adjustment) is at
+most `max_sigma_px`; else it keeps its prior with status `"prior"`.
+
+`rms_px` is the RMS of the frame's inlier tie residuals and edge offsets; `matches` counts its
+inlier tie points plus its matched model edges.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from workers.pipeline.bundle import BundleOptions, BundleResult, bundle_adjust
+from workers.pipeline.camera import Camera
+from workers.pipeline.coregister_frame import FrameFitOptions, project_jacobian
+from workers.pipeline.coregister_geometry import pose_delta
+from workers.pipeline.coregister_sequence import frame_noise_covariance
+from workers.pipeline.features import FeatureOptions
+from workers.pipeline.model_edges import EdgeOptions, Wireframe
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+from workers.pipeline.results import RefinedPose
+from workers.pipeline.tracks import TrackOptions, Tracks, track_sequence
+
+__all__ = [
+    "BlockOptions", "UnitSequence", "accept_frames", "adjust_block", "block_reason", "refine_block",
+    "refine_from_sequence", "sigma_px",
+]
+
+
+@dataclass(frozen=True)
+class BlockOptions:
+    """Parameters of the block orientation (pixels, metres, degrees)."""
+
+    tracks: TrackOptions = field(default_factory=TrackOptions)
+    bundle: BundleOptions = field(default_factory=BundleOptions)
+    # each frame's own deviation from the block's common prior error (white GNSS noise, vibration)
+    frame_sigma_deg: float = 0.3
+    frame_sigma_m: float = 0.3
+    # floors of the common error's prior σ (see the module docstring)
+    common_sigma_floor_m: float = 1.0
+    common_sigma_floor_deg: float = 2.0
+    # track again from the adjusted poses when the ties fit worse than their σ (the a-posteriori
+    # σ0 of unit weight above this)
+    retrack_sigma0: float = 1.0
+    # after the sequence orientation: σ of a common correction of a building's block, for city
+    # models whose buildings may sit off each other (georeferenced one by one), metres, degrees;
+    # 0: none (the building's edges refine each frame within its sequence covariance). Its
+    # uncertainty enters every frame's: a building that shows no edge to fix it keeps its priors
+    building_sigma_m: float = 0.0
+    building_sigma_deg: float = 0.0
+    # the block found the model: mean edge support and its gain over the null support
+    min_mean_support: float = 0.3
+    min_support_gain: float = 0.15
+    # largest plausible common correction of the block
+    max_correction_m: float = 9.0
+    max_correction_deg: float = 8.0
+    # a frame is refined with at least this many inlier tie points (or the frame fit's edge
+    # inliers) and a predicted uncertainty of the building's vertices of at most this (px)
+    min_ties: int = 8
+    max_sigma_px: float = 1.5
+
+
+@dataclass(frozen=True, eq=False)
+class UnitSequence:
+    """What a building unit takes from the sequence orientation (`orient_sequence`) for its frames.
+
+    Attributes:
+        poses: `{frame: Pose}` refined by the sequence orientation (the frames it oriented).
+        covariance: `{frame: (6, 6)}` of `(ω_cam [rad], dC_world [m])` of those poses.
+        tracks: the sequence's tracks restricted to the unit's frames (track points as adjusted).
+    """
+
+    poses: dict[int, Pose]
+    covariance: dict[int, np.ndarray]
+    tracks: Tracks
+
+
+def sigma_px(camera: Camera, pose: Pose, X: np.ndarray, cov: np.ndarray) -> float:
+    """RMS predicted reprojection uncertainty (px) of points `X` `(N, 3)` in the frame for a pose
+    with covariance `cov` `(6, 6)` of `(ω_cam, dC_world)`; inf when none is in the frame."""
+    uv, z, J = project_jacobian(camera, pose, X)
+    inside = (z > 0.5) & camera.in_image(uv)
+    if not inside.any() or not np.all(np.isfinite(cov)):
+        return float("inf")
+    return float(np.sqrt(np.mean(np.einsum("nki,ij,nkj->n", J[inside], cov, J[inside]))))
+
+
+def adjust_block(
+    camera: Camera,
+    scene_wf: Wireframe,
+    raycaster: RayCaster,
+    frames: Sequence[int],
+    images: Mapping[int, np.ndarray],
+    prior: Mapping[int, Pose],
+    start: Mapping[int, Pose],
+    prior_info: np.ndarray,
+    options: BlockOptions = BlockOptions(),
+    fit_options: FrameFitOptions = FrameFitOptions(),
+    edge_options: EdgeOptions = EdgeOptions(),
+    feature_options: FeatureOptions = FeatureOptions(),
+) -> tuple[BundleResult, Tracks]:
+    """Tracks through `frames` and the bundle adjustment of the block against `scene_wf`, tracked
+    and adjusted again when the ties fit worse than their σ (`retrack_sigma0`; module docstring).
+
+    Args:
+        camera: interior orientation.
+        scene_wf: the wireframe whose edges are observed.
+        raycaster: the scene (hidden-edge removal, track points).
+        frames: at least 2 frame indices in recording order.
+        images: `(H, W)` float32 physical values per frame.
+        prior: prior pose per frame (world = model CRS).
+        start: start pose per frame (the prior, or the prior with a common correction).
+        prior_info: `(6, 6)` information of the prior's common error on `δ` (rad⁻², m⁻²),
+            floored at the common σ floors.
+        options, fit_options, edge_options, feature_options: parameters.
+    """
+    frames = list(frames)
+    white = np.linalg.inv(frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m))
+    frame_info = dict.fromkeys(frames, white)
+    common_info = _floored(prior_info, options)
+    poses = dict(start)
+    for _ in range(2):
+        tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks)
+        res = bundle_adjust(camera, frames, images, poses, prior, frame_info, common_info, tracks, scene_wf,
+                            raycaster, options.bundle, fit_options, edge_options, feature_options)
+        poses = res.poses
+        if res.sigma0 <= options.retrack_sigma0:
+            break
+    return res, tracks
+
+
+def refine_block(
+    camera: Camera,
+    building_wf: Wireframe,
+    scene_wf: Wireframe,
+    raycaster: RayCaster,
+    frames: Sequence[int],
+    images: Mapping[int, np.ndarray],
+    prior: Mapping[int, Pose],
+    start: Mapping[int, Pose],
+    prior_info: np.ndarray,
+    options: BlockOptions = BlockOptions(),
+    fit_options: FrameFitOptions = FrameFitOptions(),
+    edge_options: EdgeOptions = EdgeOptions(),
+    feature_options: FeatureOptions = FeatureOptions(),
+) -> tuple[dict[int, RefinedPose], BundleResult | None, str]:
+    """Orient the building's `frames` as one block (`adjust_block`, then the acceptance of the
+    module docstring); `building_wf` gives the vertices of the predicted uncertainty.
+
+    Returns:
+        (`{frame: RefinedPose}`, the adjustment or None, why the block was rejected or "").
+    """
+    frames = list(frames)
+    if len(frames) < 2:
+        keep = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
+        return keep, None, "fewer than 2 frames"
+    res, _ = adjust_block(camera, scene_wf, raycaster, frames, images, prior, start, prior_info, options,
+                          fit_options, edge_options, feature_options)
+    reason = block_reason(frames, prior, res, options)
+    if reason:
+        return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, reason
+    return accept_frames(camera, building_wf.vertices, frames, prior, res, options, fit_options), res, ""
+
+
+def refine_from_sequence(
+    camera: Camera,
+    building_wf: Wireframe,
+    raycaster: RayCaster,
+    frames: Sequence[int],
+    images: Mapping[int, np.ndarray],
+    prior: Mapping[int, Pose],
+    sequence: UnitSequence,
+    options: BlockOptions = BlockOptions(),
+    fit_options: FrameFitOptions = FrameFitOptions(),
+    edge_options: EdgeOptions = EdgeOptions(),
+    feature_options: FeatureOptions = FeatureOptions(),
+) -> tuple[dict[int, RefinedPose], BundleResult | None, str]:
+    """The building's own refinement after the sequence orientation (`orient_sequence`): the
+    bundle adjustment of the unit's frames with the sequence's tracks and the BUILDING's edges,
+    each frame's sequence pose a prior with its covariance (and, with `building_sigma_*` > 0, one
+    common correction of the block: the building's model may sit a little off the others). A
+    frame the sequence did not orient has its `prior` with the per-frame noise σ. Accepted as
+    `refine_block`, except that a building showing no model edge at all keeps the sequence's
+    orientation (the block found the model there).
+
+    Returns:
+        (`{frame: RefinedPose}`, the adjustment or None, why the block was rejected or "").
+    """
+    frames = list(frames)
+    white = np.linalg.inv(frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m))
+    start: dict[int, Pose] = {}
+    info: dict[int, np.ndarray] = {}
+    for i in frames:
+        cov = sequence.covariance.get(i)
+        if cov is not None and np.all(np.isfinite(cov)):
+            start[i] = sequence.poses[i]
+            info[i] = np.linalg.inv(cov + np.diag([1e-12] * 3 + [1e-8] * 3))
+        else:
+            start[i], info[i] = prior[i], white
+    common = None
+    if options.building_sigma_m > 0 and options.building_sigma_deg > 0:
+        sd = [np.radians(options.building_sigma_deg)] * 3 + [options.building_sigma_m] * 3
+        common = np.diag(np.asarray(sd) ** -2)
+    res = bundle_adjust(camera, frames, images, start, start, info, common, sequence.tracks, building_wf,
+                        raycaster, options.bundle, fit_options, edge_options, feature_options)
+    reason = block_reason(frames, start, res, options) if res.edge_support else ""
+    if reason:
+        return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, reason
+    oriented = set(sequence.covariance)
+    out = accept_frames(camera, building_wf.vertices, frames, prior, res, options, fit_options, oriented)
+    return out, res, ""
+
+
+def accept_frames(
+    camera: Camera,
+    X: np.ndarray,
+    frames: Sequence[int],
+    prior: Mapping[int, Pose],
+    res: BundleResult,
+    options: BlockOptions,
+    fit_options: FrameFitOptions,
+    oriented: set[int] | frozenset[int] = frozenset(),
+) -> dict[int, RefinedPose]:
+    """Per-frame acceptance of an adjusted block (module docstring): `"refined"` with the adjusted
+    pose when the frame is observed (tie points or edges, or oriented by the sequence: `oriented`)
+    with residuals below `fit.max_rms_px` and the predicted uncertainty of the points `X` `(N, 3)`
+    (the building's vertices) in it is at most `max_sigma_px`; else `"prior"`."""
+    out = {}
+    fo = fit_options
+    for i in frames:
+        pose = res.poses[i]
+        ties, edges = res.ties[i], res.matched_edges.get(i, 0)
+        rms = _rms(res, i)
+        seen = i in oriented or ties >= options.min_ties or \
+            (edges >= fo.min_edges and res.edge_support.get(i, 0.0) >= fo.min_support)
+        ok_rms = not np.isfinite(rms) or rms <= fo.max_rms_px
+        if seen and ok_rms and sigma_px(camera, pose, X, res.covariance[i]) <= options.max_sigma_px:
+            out[i] = RefinedPose(i, pose, "refined", rms, ties + edges)
+        else:
+            out[i] = RefinedPose(i, prior[i], "prior", rms, ties + edges)
+    return out
+
+
+def _floored(info: np.ndarray, options: BlockOptions) -> np.ndarray:
+    """`info` `(6, 6)` with its standard deviations floored at the common σ floors (rotation
+    block in rad, position block in m; the correlations are dropped where a floor applies)."""
+    cov = np.linalg.inv(info)
+    sd = np.sqrt(np.diag(cov))
+    floor = np.r_[[np.radians(options.common_sigma_floor_deg)] * 3, [options.common_sigma_floor_m] * 3]
+    if np.all(sd >= floor):
+        return info
+    return np.diag(1.0 / np.maximum(sd, floor) ** 2)
+
+
+def _rms(res: BundleResult, i: int) -> float:
+    """RMS (px) of frame i's inlier tie residuals and edge offsets together."""
+    parts, n = 0.0, 0
+    if res.ties[i] and np.isfinite(res.tie_rms_px[i]):
+        parts += res.tie_rms_px[i] ** 2 * res.ties[i] * 2
+        n += 2 * res.ties[i]
+    e = res.edge_rms_px.get(i, float("nan"))
+    if np.isfinite(e):
+        parts += e**2 * 10
+        n += 10
+    return float(np.sqrt(parts / n)) if n else float("nan")
+
+
+def block_reason(frames: Sequence[int], prior: Mapping[int, Pose], res: BundleResult,
+                 options: BlockOptions) -> str:
+    """Why the block as a whole is not trusted ("" when it is)."""
+    sup = [res.edge_support[i] for i in frames if i in res.edge_support]
+    if not sup:
+        return "no frame of the block sees model edges"
+    mean = float(np.mean(sup))
+    null = float(np.mean([res.null_support[i] for i in frames if i in res.null_support]))
+    if mean < options.min_mean_support:
+        return f"mean edge support {mean:.2f} < {options.min_mean_support}"
+    if mean - null < options.min_support_gain:
+        return f"edge support {mean:.2f} not above the null support {null:.2f}"
+    d = np.array([pose_delta(prior[i], res.poses[i]) for i in frames])
+    med = np.median(d, axis=0)
+    if np.linalg.norm(med[3:]) > options.max_correction_m or \
+            np.degrees(np.linalg.norm(med[:3])) > options.max_correction_deg:
+        return "correction beyond the plausible range"
+    return ""

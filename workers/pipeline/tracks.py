@@ -1,0 +1,439 @@
+"""Feature tracks through a frame sequence, on the model's surfaces (tie points for the bundle).
+
+In: a `Camera`, frames in recording order with their images `(H, W)` float32 (physical values),
+a pose per frame (the calibrated GNSS/INS priors: a few pixels off), a `RayCaster` over the
+building model. Out: `Tracks`: every track's image observations `(frame, u, v)` and the model
+plane its point lies on (the polygon its first view's ray meets).
+
+Why: consecutive TIR frames of a drive overlap by 90 %; a facade point seen in ten frames ties
+their poses together far more precisely than GNSS does (0.2 m of white noise is 15 px at 11 m),
+and its lying on a model plane ties the block to the model (Hoegner & Stilla, method 2).
+
+Detection: the smaller eigenvalue of the structure tensor of the float frame (gradients in
+physical units, Gaussian window) must reach `min_texture_ratio` × the frame's median, a
+unit-free floor of noise and fixed-pattern stripes: weaker points drift on the pattern, which
+moves with the sensor, not with the scene. Points whose rays and the rays `boundary_px` around
+them do not all meet one model polygon (occlusion boundaries, sky, ground) are not tracked.
+
+Tracking, frame k−1 to k:
+1. prediction: each track's model point projected with pose k;
+2. coarse: pyramidal Lucas-Kanade (OpenCV) on an 8-bit high-pass copy of the frames (the image
+   minus its Gaussian blur, one gain for the sequence: translation-invariant, unlike CLAHE tiles
+   or a stretch whose range the cold sky takes), from the prediction, with a forward-backward
+   check;
+3. fine: Lucas-Kanade on the float frames against the track's FIRST view (no drift along the
+   track), the template warped by the plane-induced affine map from the first view to frame k
+   (perspective changes by degrees between views at close range); the patch means are removed
+   (a brightness offset); accepted when the zero-mean normalised correlation reaches `min_ncc`;
+4. RANSAC of the essential matrix between frames k−1 and k removes what moved otherwise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+
+__all__ = ["TrackOptions", "Tracks", "plane_affine", "texture_strength", "track_sequence"]
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """Parameters of detection and tracking (pixels)."""
+
+    # structure tensor: Gaussian window σ; a point's smaller eigenvalue must reach this multiple
+    # of the frame's median (the floor of noise and fixed-pattern stripes); non-maximum
+    # suppression radius
+    window_sigma_px: float = 2.5
+    min_texture_ratio: float = 10.0
+    nms_radius_px: int = 4
+    # new tracks: at most one per free cell of this size, up to `max_tracks` active ones, this far
+    # from the frame border
+    cell_px: int = 32
+    max_tracks: int = 200
+    border_px: int = 16
+    # the rays this far around a point must meet the same model polygon (else: an occlusion
+    # boundary or no surface), at incidence |cos| ≥ `min_incidence`
+    boundary_px: float = 6.0
+    min_incidence: float = 0.15
+    # coarse: pyramidal LK window, levels, forward-backward tolerance; the high-pass copy: blur σ
+    lk_window_px: int = 21
+    lk_levels: int = 3
+    fb_tolerance_px: float = 1.0
+    highpass_sigma_px: float = 32.0
+    # fine: half window of the float LK (Gaussian weights of σ = half window / 2), iterations,
+    # the largest step from the coarse position, the correlation a track needs to go on
+    fine_half_window_px: int = 7
+    fine_iterations: int = 12
+    fine_max_shift_px: float = 3.0
+    min_ncc: float = 0.85
+    # RANSAC of the essential matrix between consecutive frames: threshold
+    ransac_px: float = 1.0
+    # a track ends after this many views (the template ages)
+    max_length: int = 12
+
+
+@dataclass(frozen=True, eq=False)
+class Tracks:
+    """Feature tracks (see the module docstring).
+
+    Attributes:
+        track: `(M,)` int track index of each observation.
+        frame: `(M,)` int frame index of each observation.
+        uv: `(M, 2)` float64 pixel coordinates (pixel centres at integers).
+        point: `(T,)`-by-3 `(T, 3)` world point of each track: its first view's ray on the model.
+        normal: `(T, 3)` unit normal of the model plane the point lies on (world).
+        polygon: `(T,)` int model polygon index (`SceneMesh.polygon_ids`).
+    """
+
+    track: np.ndarray
+    frame: np.ndarray
+    uv: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    polygon: np.ndarray
+
+    @property
+    def n_tracks(self) -> int:
+        """Number of tracks."""
+        return len(self.point)
+
+    def lengths(self) -> np.ndarray:
+        """`(T,)` observations per track."""
+        return np.bincount(self.track, minlength=self.n_tracks)
+
+
+def texture_strength(image: np.ndarray, window_sigma: float) -> np.ndarray:
+    """Smaller eigenvalue `(H, W)` float32 of the structure tensor of `image` `(H, W)` (central
+    differences in the image's units per pixel, Gaussian window `window_sigma` px, weights summing
+    to 1): the texture a translation-only tracker can lock onto in its weakest direction."""
+    img = np.asarray(image, dtype=np.float32)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
+    k = max(3, 2 * round(2.5 * window_sigma) + 1)
+    sxx = cv2.GaussianBlur(gx * gx, (k, k), window_sigma)
+    syy = cv2.GaussianBlur(gy * gy, (k, k), window_sigma)
+    sxy = cv2.GaussianBlur(gx * gy, (k, k), window_sigma)
+    half = 0.5 * (sxx + syy)
+    return half - np.sqrt(np.maximum(half * half - (sxx * syy - sxy * sxy), 0.0))
+
+
+def _ray_points(camera: Camera, raycaster: RayCaster, pose: Pose, uv: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays of pixels `uv` `(N, 2)` from `pose` on the model -> (points `(N, 3)`, polygon `(N,)`
+    (-1: miss), unit normals `(N, 3)` facing the camera)."""
+    d = camera.bearing(uv) @ pose.R_world_from_cam.T
+    hits = raycaster.cast(np.broadcast_to(pose.center, d.shape).copy(), d)
+    t = np.where(hits.hit, hits.t, 0.0)
+    n = hits.normal * np.where(np.sum(hits.normal * d, axis=1) > 0, -1.0, 1.0)[:, None]
+    return pose.center + t[:, None] * d, hits.polygon, n
+
+
+def _on_surface(camera: Camera, raycaster: RayCaster, pose: Pose, uv: np.ndarray,
+                options: TrackOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Which pixels `uv` `(N, 2)` lie inside one model polygon (their ray and the four rays
+    `boundary_px` around it meet the same polygon, not at grazing incidence) -> (ok `(N,)`,
+    points, polygons, normals)."""
+    X, poly, n = _ray_points(camera, raycaster, pose, uv)
+    d = camera.bearing(uv) @ pose.R_world_from_cam.T
+    ok = (poly >= 0) & (np.abs(np.sum(n * d, axis=1)) >= options.min_incidence)
+    b = options.boundary_px
+    for off in ((b, 0.0), (-b, 0.0), (0.0, b), (0.0, -b)):
+        _, p2, _ = _ray_points(camera, raycaster, pose, uv + np.array(off))
+        ok &= p2 == poly
+    return ok, X, poly, n
+
+
+def _plane_rays(camera: Camera, pose: Pose, uv: np.ndarray, step: float = 1.0) -> np.ndarray:
+    """World directions `(N, 5, 3)` of the rays of view `pose` through pixels `uv` `(N, 2)` and
+    through `uv ± step` along u and v (order: centre, +u, −u, +v, −v)."""
+    offs = np.array([[0.0, 0.0], [step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]])
+    px = (uv[:, None, :] + offs[None]).reshape(-1, 2)
+    return (camera.bearing(px) @ pose.R_world_from_cam.T).reshape(len(uv), 5, 3)
+
+
+def _plane_map(camera: Camera, origin: np.ndarray, rays: np.ndarray, X0: np.ndarray, normal: np.ndarray,
+               pose: Pose) -> np.ndarray:
+    """Rays `(N, K, 3)` (world) from `origin` `(N, 3)` meet the planes through `X0` `(N, 3)` with
+    `normal` `(N, 3)`; the points projected with `pose` -> pixels `(N, K, 2)` (NaN behind it)."""
+    den = np.einsum("nj,nkj->nk", normal, rays)
+    s = np.sum(normal * (X0 - origin), axis=1)[:, None] / np.where(np.abs(den) > 1e-9, den, np.nan)
+    X = origin[:, None, :] + s[..., None] * rays
+    uv, z = pose.project(camera, X.reshape(-1, 3))
+    uv[~(z > 0)] = np.nan
+    return uv.reshape(*rays.shape[:2], 2)
+
+
+def plane_affine(camera: Camera, pa: Pose, pb: Pose, uv: np.ndarray, X0: np.ndarray,
+                 normal: np.ndarray, step: float = 1.0) -> np.ndarray:
+    """Local affine maps `(N, 2, 2)` (columns ∂uv_b/∂u_a, ∂uv_b/∂v_a) of the plane-induced
+    mapping from view a to view b at pixels `uv` `(N, 2)` of view a (central differences of
+    `step` px)."""
+    rays = _plane_rays(camera, pa, uv, step)
+    return _affine(_plane_map(camera, np.broadcast_to(pa.center, X0.shape), rays, X0, normal, pb), step)
+
+
+def _affine(mapped: np.ndarray, step: float) -> np.ndarray:
+    """Affine maps `(N, 2, 2)` from the mapped `(N, 5, 2)` centre, +u, −u, +v, −v pixels."""
+    return np.stack([(mapped[:, 1] - mapped[:, 2]) / (2 * step), (mapped[:, 3] - mapped[:, 4]) / (2 * step)],
+                    axis=2)
+
+
+def _window(options: TrackOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Offsets `du`, `dv` `(K,)` of the fine window and its Gaussian weights `(K,)` (sum 1)."""
+    h = options.fine_half_window_px
+    k = np.arange(-h, h + 1, dtype=np.float64)
+    du, dv = (g.ravel() for g in np.meshgrid(k, k))
+    w = np.exp(-0.5 * (du * du + dv * dv) / (h / 2.0) ** 2)
+    return du, dv, w / w.sum()
+
+
+def _templates(image: np.ndarray, uv: np.ndarray, options: TrackOptions) -> np.ndarray:
+    """Zero-mean (Gaussian-weighted) templates `(N, K)` of `image` around pixels `uv` `(N, 2)`."""
+    du, dv, w = _window(options)
+    T = cv2.remap(image, (uv[:, 0:1] + du).astype(np.float32), (uv[:, 1:2] + dv).astype(np.float32),
+                  cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    return T - (T * w).sum(axis=1, keepdims=True)
+
+
+def _highpass(image: np.ndarray, sigma: float) -> np.ndarray:
+    """`image − blur(image)` `(H, W)` float32; the Gaussian blur of σ `sigma` px is taken at a
+    resolution reduced to about σ / 4 per pixel (a wide kernel at full resolution is slow)."""
+    img = np.asarray(image, dtype=np.float32)
+    H, W = img.shape
+    f = max(1, int(sigma // 4))
+    small = cv2.resize(img, (max(W // f, 1), max(H // f, 1)), interpolation=cv2.INTER_AREA)
+    blur = cv2.resize(cv2.GaussianBlur(small, (0, 0), sigma / f), (W, H), interpolation=cv2.INTER_LINEAR)
+    return img - blur
+
+
+def _highpass8(image: np.ndarray, sigma: float, gain: float) -> np.ndarray:
+    """8-bit copy `(H, W)` uint8 of `image`: `128 + gain · (image − blur(image))`, clipped."""
+    return np.clip(128.0 + gain * _highpass(image, sigma), 0, 255).astype(np.uint8)
+
+
+def _fine(T: np.ndarray, stack: np.ndarray, uv0: np.ndarray, A: np.ndarray,
+          options: TrackOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Lucas-Kanade of the translation of zero-mean templates `T` `(N, K)` (`_templates`), mapped
+    by the affine maps `A` `(N, 2, 2)`, into the frame whose values and gradients are `stack`
+    `(H, W, 3)` float32, from `uv0` `(N, 2)`; the patch means are removed (brightness offset).
+    Returns (positions `(N, 2)`, zero-mean normalised correlation `(N,)`)."""
+    du, dv, w = _window(options)
+    ou = A[:, 0, 0:1] * du + A[:, 0, 1:2] * dv
+    ov = A[:, 1, 0:1] * du + A[:, 1, 1:2] * dv
+    p = uv0.astype(np.float64).copy()
+    for _ in range(options.fine_iterations):
+        ub = (p[:, 0:1] + ou).astype(np.float32)
+        vb = (p[:, 1:2] + ov).astype(np.float32)
+        s = cv2.remap(stack, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        val, Gx, Gy = s[..., 0], s[..., 1], s[..., 2]
+        e = val - (val * w).sum(axis=1, keepdims=True) - T
+        Gx = Gx - (Gx * w).sum(axis=1, keepdims=True)
+        Gy = Gy - (Gy * w).sum(axis=1, keepdims=True)
+        a, b, c = (w * Gx * Gx).sum(1), (w * Gx * Gy).sum(1), (w * Gy * Gy).sum(1)
+        r1, r2 = -(w * Gx * e).sum(1), -(w * Gy * e).sum(1)
+        det = np.maximum(a * c - b * b, 1e-20)
+        step = np.stack([(c * r1 - b * r2) / det, (a * r2 - b * r1) / det], axis=1)
+        step = np.clip(step, -1.0, 1.0)
+        p += step
+        if np.max(np.abs(step)) < 0.005:
+            break
+    ub = (p[:, 0:1] + ou).astype(np.float32)
+    vb = (p[:, 1:2] + ov).astype(np.float32)
+    val = cv2.remap(stack[..., 0], ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    val = val.astype(np.float64)
+    val -= (val * w).sum(axis=1, keepdims=True)
+    ncc = (w * val * T).sum(1) / np.sqrt(np.maximum((w * val * val).sum(1) * (w * T * T).sum(1), 1e-30))
+    return p, ncc
+
+
+def _detect(strength: np.ndarray, occupied: np.ndarray, options: TrackOptions, n_max: int) -> np.ndarray:
+    """Candidate pixels `(K, 2)` (u, v), strongest first: local maxima of `strength` `(H, W)`
+    above the texture floor, at most one per free cell (`occupied` `(rows, cols)` bool)."""
+    if n_max <= 0:
+        return np.zeros((0, 2))
+    floor = float(np.median(strength[::4, ::4])) * options.min_texture_ratio
+    r = options.nms_radius_px
+    peak = strength >= cv2.dilate(strength, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+    b = options.border_px
+    peak[:b] = peak[-b:] = False
+    peak[:, :b] = peak[:, -b:] = False
+    v, u = np.nonzero(peak & (strength > floor))
+    if len(v) == 0:
+        return np.zeros((0, 2))
+    order = np.argsort(-strength[v, u])
+    v, u = v[order], u[order]
+    cell = (v // options.cell_px) * occupied.shape[1] + (u // options.cell_px)
+    free = ~occupied.ravel()[cell]
+    v, u, cell = v[free], u[free], cell[free]
+    _, first = np.unique(cell, return_index=True)
+    first = np.sort(first)[:n_max]
+    return np.stack([u[first], v[first]], axis=1).astype(np.float64)
+
+
+@dataclass(eq=False)
+class _Active:
+    """The tracks being followed: ids `(N,)`, last positions `(N, 2)`, views so far `(N,)`, their
+    first view's centre `(N, 3)` and rays `(N, 5, 3)` (`_plane_rays`), model point and plane
+    normal `(N, 3)`, template `(N, K)`."""
+
+    ids: np.ndarray
+    last_uv: np.ndarray
+    n_obs: np.ndarray
+    origin: np.ndarray
+    rays: np.ndarray
+    X0: np.ndarray
+    normal: np.ndarray
+    template: np.ndarray
+
+    @classmethod
+    def empty(cls, options: TrackOptions) -> _Active:
+        k = (2 * options.fine_half_window_px + 1) ** 2
+        z3 = np.zeros((0, 3))
+        return cls(np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, int), z3, np.zeros((0, 5, 3)), z3, z3,
+                   np.zeros((0, k)))
+
+    def select(self, m: np.ndarray) -> _Active:
+        return _Active(self.ids[m], self.last_uv[m], self.n_obs[m], self.origin[m], self.rays[m], self.X0[m],
+                       self.normal[m], self.template[m])
+
+    def add(self, ids: np.ndarray, uv: np.ndarray, center: np.ndarray, rays: np.ndarray, X0: np.ndarray,
+            normal: np.ndarray, template: np.ndarray) -> _Active:
+        n = len(ids)
+        return _Active(np.concatenate([self.ids, ids]), np.concatenate([self.last_uv, uv]),
+                       np.concatenate([self.n_obs, np.ones(n, int)]),
+                       np.concatenate([self.origin, np.broadcast_to(center, (n, 3))]),
+                       np.concatenate([self.rays, rays]), np.concatenate([self.X0, X0]),
+                       np.concatenate([self.normal, normal]), np.concatenate([self.template, template]))
+
+
+def track_sequence(
+    camera: Camera,
+    frames: Sequence[int],
+    images: Mapping[int, np.ndarray],
+    poses: Mapping[int, Pose],
+    raycaster: RayCaster,
+    options: TrackOptions = TrackOptions(),
+) -> Tracks:
+    """Tracks through `frames` (recording order) on the model's surfaces (module docstring).
+
+    Args:
+        camera: interior orientation.
+        frames: frame indices in recording order (consecutive entries are tracked against each other).
+        images: `(H, W)` float32 physical values per frame.
+        poses: camera pose per frame (world = model CRS), a few pixels off at most.
+        raycaster: the model the points lie on.
+        options: parameters.
+    """
+    frames = list(frames)
+    H, W = camera.height, camera.width
+    rows, cols = (H + options.cell_px - 1) // options.cell_px, (W + options.cell_px - 1) // options.cell_px
+    obs_t: list[np.ndarray] = []
+    obs_f: list[np.ndarray] = []
+    obs_uv: list[np.ndarray] = []
+    pts: list[np.ndarray] = []
+    nrms: list[np.ndarray] = []
+    polys: list[np.ndarray] = []
+    # one gain for the high-pass copies (translation-invariant tracking input)
+    gain = 0.0
+    if frames:
+        img0 = np.asarray(images[frames[len(frames) // 2]], dtype=np.float32)
+        hp = _highpass(img0, options.highpass_sigma_px)
+        gain = 40.0 / max(float(np.percentile(np.abs(hp[::2, ::2]), 90)), 1e-6)
+    act = _Active.empty(options)
+    prev8 = None
+    prev = None
+    lk = {"winSize": (options.lk_window_px, options.lk_window_px), "maxLevel": options.lk_levels}
+    for f in frames:
+        img = np.asarray(images[f], dtype=np.float32)
+        img8 = _highpass8(img, options.highpass_sigma_px, gain)
+        if len(act.ids) and prev is not None and prev8 is not None:
+            pose = poses[f]
+            mapped = _plane_map(camera, act.origin, act.rays, act.X0, act.normal, pose)
+            pred = mapped[:, 0]
+            pred_prev, _ = poses[prev].project(camera, act.X0)
+            ok = np.isfinite(mapped).all(axis=(1, 2)) & camera.in_image(pred, options.border_px / 2)
+            ok &= np.isfinite(pred_prev).all(axis=1)
+            new_uv = np.full((len(act.ids), 2), np.nan)
+            if ok.any():
+                p0 = act.last_uv[ok].astype(np.float32)[:, None]
+                guess = (act.last_uv[ok] + (pred[ok] - pred_prev[ok])).astype(np.float32)[:, None]
+                p1, st, _ = cv2.calcOpticalFlowPyrLK(prev8, img8, p0, guess.copy(),
+                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+                pb, st2, _ = cv2.calcOpticalFlowPyrLK(img8, prev8, p1, p0.copy(),
+                                                      flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+                good = (st[:, 0] == 1) & (st2[:, 0] == 1) & \
+                    (np.linalg.norm(pb[:, 0] - p0[:, 0], axis=1) < options.fb_tolerance_px)
+                idx = np.flatnonzero(ok)[good]
+                if len(idx):
+                    coarse = p1[good, 0].astype(np.float64)
+                    A = _affine(mapped[idx], 1.0)
+                    stack = cv2.merge([img, cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5),
+                                       cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)])
+                    fine, ncc = _fine(act.template[idx], stack, coarse, A, options)
+                    keep = (ncc >= options.min_ncc) & \
+                        (np.linalg.norm(fine - coarse, axis=1) <= options.fine_max_shift_px) & \
+                        camera.in_image(fine, 2.0)
+                    new_uv[idx[keep]] = fine[keep]
+            # RANSAC of the essential matrix between the previous frame and this one
+            m = np.isfinite(new_uv).all(axis=1)
+            if m.sum() >= 8:
+                xa = camera.normalized_from_pixel(act.last_uv[m])
+                xb = camera.normalized_from_pixel(new_uv[m])
+                _, inl = cv2.findEssentialMat(xa, xb, np.eye(3), cv2.RANSAC, 0.999,
+                                              options.ransac_px / camera.fx)
+                if inl is not None:
+                    new_uv[np.flatnonzero(m)[inl.ravel() == 0]] = np.nan
+            cont = np.isfinite(new_uv).all(axis=1)
+            if cont.any():
+                obs_t.append(act.ids[cont])
+                obs_f.append(np.full(int(cont.sum()), f))
+                obs_uv.append(new_uv[cont])
+            act.last_uv = new_uv
+            act.n_obs = act.n_obs + 1
+            act = act.select(cont & (act.n_obs < options.max_length))
+        # new tracks in free cells
+        occupied = np.zeros((rows, cols), bool)
+        if len(act.ids):
+            c = np.clip((act.last_uv // options.cell_px).astype(int), 0, [cols - 1, rows - 1])
+            occupied[c[:, 1], c[:, 0]] = True
+        cand = _detect(texture_strength(img, options.window_sigma_px), occupied, options,
+                       options.max_tracks - len(act.ids))
+        if len(cand):
+            ok, X, poly, nrm = _on_surface(camera, raycaster, poses[f], cand, options)
+            cand, X, poly, nrm = cand[ok], X[ok], poly[ok], nrm[ok]
+            ids = np.arange(len(pts), len(pts) + len(cand))
+            pts.extend(X)
+            nrms.extend(nrm)
+            polys.extend(poly)
+            obs_t.append(ids)
+            obs_f.append(np.full(len(ids), f))
+            obs_uv.append(cand)
+            act = act.add(ids, cand, poses[f].center, _plane_rays(camera, poses[f], cand), X, nrm,
+                          _templates(img, cand, options))
+        prev8, prev = img8, f
+    if not pts:
+        z3 = np.zeros((0, 3))
+        return Tracks(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), z3, z3, np.zeros(0, int))
+    track = np.concatenate(obs_t)
+    frame = np.concatenate(obs_f)
+    uv = np.concatenate(obs_uv)
+    # single-view tracks tie nothing: drop them and renumber
+    length = np.bincount(track, minlength=len(pts))
+    keep_t = length >= 2
+    new_id = np.cumsum(keep_t) - 1
+    m = keep_t[track]
+    return Tracks(
+        track=new_id[track[m]],
+        frame=frame[m],
+        uv=uv[m],
+        point=np.array(pts)[keep_t],
+        normal=np.array(nrms)[keep_t],
+        polygon=np.array(polys)[keep_t],
+    )
