@@ -12,7 +12,8 @@ Prints JSON with, per platform (`drive`, `flight`; synthetic sequences of `cityt
    shows at least two model edges (hidden-edge removal), shares refined / prior, median position
    and rotation error of refined poses, feature and matching quality (completeness, correctness);
 3. optionally (`--texture`) the texture accuracy of `citytherm run` with refinement on that
-   drive (bars RMSE ≤ 0.45 K, misregistration ≤ 0.5 texel);
+   sequence (written as CityGML and a sequence package) and on a drive around the bundled
+   Berlin model (bars RMSE ≤ 0.45 K, misregistration ≤ 0.5 texel);
 4. time per frame and building of `refine_building` (frames pre-rendered in memory), median.
 
 Usage: `python bench/orientation.py [--frames 40] [--buildings 3] [--seed 1] [--texture]`.
@@ -226,7 +227,9 @@ def main() -> None:
     ap.add_argument("--buildings", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--platforms", default="flight,drive")
-    ap.add_argument("--texture", action="store_true", help="also run citytherm run on the drive (slow)")
+    ap.add_argument("--texture", action="store_true", help="also run citytherm run on the sequences (slow)")
+    ap.add_argument("--texture-models", default="procedural,berlin",
+                    help="scenes of the texture runs: procedural (the scene above), berlin (bundled model)")
     a = ap.parse_args()
     options = CoregisterOptions()
     out: dict = {"bench": "orientation", "frames": a.frames, "cluster_buildings": a.buildings, "seed": a.seed}
@@ -258,37 +261,52 @@ def main() -> None:
         }
         out[platform] = sec
         if a.texture:
-            out.setdefault("texture", {})[platform] = texture_run(platform, a.frames, a.buildings, a.seed)
+            out.setdefault("texture", {})[platform] = [
+                texture_run(platform, a.frames, a.buildings, a.seed, m) for m in a.texture_models.split(",")]
     if "texture" not in out:
         out["texture"] = "not run (pass --texture; needs `citytherm run` with refinement)"
     out["wall_s"] = round(time.perf_counter() - t_all, 1)
     print(json.dumps(out, indent=1))
 
 
-def texture_run(platform: str, frames: int, buildings: int, seed: int) -> dict:
-    """`citytherm run` with refinement on a sequence around the bundled real model with the
-    default error model; texture accuracy and orientation figures against the truth, and the same
-    run without refinement for comparison."""
+def texture_run(platform: str, frames: int, buildings: int, seed: int, model: str) -> dict:
+    """`citytherm run` with refinement on a synthetic sequence with the default error model:
+    `model` "procedural" is the scene of the orientation figures above (the procedural block,
+    written as CityGML), "berlin" a drive around the bundled real model. Texture accuracy and
+    orientation figures against the truth, and the same run without refinement for comparison."""
     from db.citygml.reader import read_model
+    from db.citygml.writer import write_citygml
     from services.runner import RunOptions, run_job
     from services.synth_eval import orientation_accuracy, texture_accuracy
     from workers.pipeline.synth import BUNDLED_MODEL, write_synthetic_package
 
     root = Path(tempfile.mkdtemp(prefix="citytherm-bench-orientation-"))
+    if model == "berlin":
+        gml, blds = BUNDLED_MODEL, read_model(BUNDLED_MODEL)[1]
+    else:
+        blds = procedural_block(max(buildings + 3, 6), seed=seed)
+        gml = root / "procedural.gml"
+        write_citygml(gml, blds, srs_name=blds[0].srs_name)
     opts = SynthOptions(platform=platform, n_frames=frames, seed=seed, buildings=buildings,
-                        model_path=str(BUNDLED_MODEL))
-    res = synthesize(read_model(BUNDLED_MODEL)[1], opts)
+                        model_path=str(gml))
+    res = synthesize(blds, opts)
     pkg = write_synthetic_package(res, root / "seq")
-    out: dict = {}
+    out: dict = {"model": model}
     for refine in (True, False):
         dest = root / ("refined" if refine else "prior")
         t0 = time.perf_counter()
-        run_job(BUNDLED_MODEL, pkg, dest, RunOptions(refine=refine, display=False))
+        run_job(gml, pkg, dest, RunOptions(refine=refine, display=False))
         wall = time.perf_counter() - t0
         acc = texture_accuracy(dest, res)
         acc.update(orientation_accuracy(dest, res))
         r = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in acc.items()}
         r["run_wall_s"] = round(wall, 1)
+        if refine:
+            rep = json.loads((dest / "report.json").read_text())
+            r["calibration_accepted"] = rep["calibration"].get("accepted")
+            so = rep.get("sequence_orientation", {})
+            r["sequence_orientation"] = {k: so.get(k) for k in ("run", "frames", "frames_oriented")}
+            r["stage_s"] = {k: round(v, 2) for k, v in rep["timings_s"].items()}
         out["refine" if refine else "no_refine"] = r
     ref = out["refine"]
     out["bars"] = {"rmse_k<=0.45": ref["rmse_k"] <= 0.45,

@@ -1,15 +1,19 @@
-"""The calibrate stage of a job (`DESIGN.md`: ingest, calibrate, plan, units, finish).
+"""The sequence stages of a job before its building units (`DESIGN.md`: ingest, calibrate,
+plan, units, finish): calibrate and, for close-range sequences, orient.
 
-In: the buildings near the cameras, the manifest, its manifest-only prior poses, the frames.
-Out: a `SequenceCalibration` (boresight, GNSS offset, lever arm, time delay; `calibrate.py`), the
-calibrated priors and accuracy the building units start from, and the `orientation.json`
-`mounting` / `report.json` `calibration` documents. The orientation modules are imported where
-the stage runs: the runner stays importable without them.
+In: the buildings near the cameras, the manifest, its prior poses, the frames.
+Out: calibrate: a `SequenceCalibration` (boresight, GNSS offset, lever arm, time delay;
+`calibrate.py`), the calibrated priors and accuracy the building units start from, and the
+`orientation.json` `mounting` / `report.json` `calibration` documents; orient: a
+`SequenceOrientation` (`orient_sequence.py`: every frame's pose refined in blocks of feature
+tracks and a bundle adjustment with the model), whose poses, covariances and tracks the units
+refine from. The orientation modules are imported where the stages run: the runner stays
+importable without them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -20,8 +24,9 @@ from workers.pipeline.sequence import Accuracy, FrameSource, Mounting, SequenceM
 
 if TYPE_CHECKING:
     from workers.pipeline.calibrate import SequenceCalibration
+    from workers.pipeline.orient_sequence import SequenceOrientation
 
-__all__ = ["calibrate_priors", "calibration_documents"]
+__all__ = ["calibrate_priors", "calibration_documents", "orient_priors", "orients"]
 
 
 def calibrate_priors(
@@ -85,3 +90,43 @@ def calibration_documents(
     from workers.pipeline.calibrate_mounting import calibration_report, mounting_document
 
     return mounting_document(mounting, calibration), calibration_report(calibration, mounting, seconds)
+
+
+def orients(platform: str) -> bool:
+    """True when sequences of `platform` are oriented in blocks before the units (close range:
+    `orient_sequence.SEQUENCE_PLATFORMS`)."""
+    from workers.pipeline.orient_sequence import SEQUENCE_PLATFORMS
+
+    return platform in SEQUENCE_PLATFORMS
+
+
+def orient_priors(
+    buildings: Sequence[Building],
+    manifest: SequenceManifest,
+    priors: Sequence[Pose],
+    frame_source: FrameSource,
+    accuracy: Accuracy | None,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[SequenceOrientation | None, dict[str, Any]]:
+    """The orient stage: `orient_sequence` over every frame of the sequence, from the
+    (calibrated) `priors` with their `accuracy`, against a ray caster over `buildings`.
+
+    Returns (the orientation, or None when it could not run, and the report.json
+    `sequence_orientation` block). An orientation that raises is reported, not fatal: the units
+    then refine from the priors.
+    """
+    from workers.pipeline.orient_sequence import orient_sequence
+    from workers.pipeline.raycast import RayCaster, build_scene_mesh
+
+    if not buildings:
+        return None, {"run": False, "reason": "no buildings near the cameras"}
+    frames = [f.index for f in manifest.frames]
+    times = {f.index: float(f.time) for f in manifest.frames}
+    try:
+        caster = RayCaster(build_scene_mesh(buildings))
+        prior = dict(zip(frames, priors, strict=True))
+        so = orient_sequence(manifest.camera, caster, frames, frame_source, prior, times, accuracy,
+                             progress=progress)
+    except Exception as exc:  # reported in report.json: the job goes on
+        return None, {"run": False, "reason": f"failed: {type(exc).__name__}: {exc}"}
+    return so, {"run": True, **so.to_dict()}

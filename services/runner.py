@@ -7,11 +7,14 @@ Stages: ingest (open the package, georeference the prior poses, stream the model
 buildings within reach of the cameras), calibrate (with refinement: boresight, GNSS offset, lever
 arm and time delay once per sequence against all those buildings, `calibrate.calibrate_sequence`;
 an accepted calibration gives the units calibrated priors and a-priori accuracy, while
-`orientation.json` keeps the manifest-only priors), plan (which frames see which building:
-`units.plan_units`), units (one `run_building_unit` per building, in a forkserver process pool
-with `workers > 1`, each worker with `cpu_count // workers` library threads; a unit that raises
-is reported, not fatal), write (`results_files.write_results_folder`: tiles, display copies,
-`textured.gml`, `orientation.json`, `report.json`). `plan_job` alone gives the service the units
+`orientation.json` keeps the manifest-only priors), orient (close-range sequences after an
+accepted calibration: every frame's pose refined in blocks of feature tracks and a bundle
+adjustment with those buildings, `orient_sequence.orient_sequence`; the units refine from it),
+plan (which frames see which building: `units.plan_units`), units (one `run_building_unit` per
+building, in a forkserver process pool with `workers > 1`, each worker with `cpu_count // workers`
+library threads; a unit that raises is reported, not fatal), write
+(`results_files.write_results_folder`: tiles, display copies, `textured.gml`, `orientation.json`,
+`report.json`). `plan_job` alone gives the service the units
 to dispatch as Celery tasks; scripts that run pools need the `if __name__ == "__main__"` guard.
 """
 
@@ -32,7 +35,7 @@ from scipy.spatial import cKDTree
 
 from db.citygml.reader import iter_buildings, read_header
 from db.sequence_package import SequencePackage, open_package
-from services.calibration_stage import calibrate_priors, calibration_documents
+from services.calibration_stage import calibrate_priors, calibration_documents, orient_priors, orients
 from services.results_files import write_results_folder, write_tile
 from workers.pipeline.citymodel import Building, ModelHeader
 from workers.pipeline.georef import prior_poses
@@ -47,7 +50,7 @@ if TYPE_CHECKING:  # the orientation modules are optional: imported where the st
 
 #: progress callback: (stage, done, total); called with done == 0 when a stage starts.
 Progress = Callable[[str, int, int], None]
-STAGES = ("ingest", "calibrate", "plan", "units", "write")
+STAGES = ("ingest", "calibrate", "orient", "plan", "units", "write")
 
 
 class RunError(ValueError):
@@ -71,6 +74,9 @@ class RunOptions:
         refine: refine poses per building before texturing (needs the orientation module).
         calibrate: with `refine`, calibrate the sequence (mounting, GNSS offset, time delay)
             before the units, which then refine from the calibrated priors.
+        orient: with `refine` and an accepted calibration, orient close-range sequences (drives)
+            in blocks (feature tracks, bundle adjustment with the model) before the units, which
+            then refine from those poses.
         display: also write the 8-bit colour-mapped `<theme>-display` appearance.
         unit: per-stage options of the units (its texel resolution, theme and refine flag are
             overridden by the fields above).
@@ -83,6 +89,7 @@ class RunOptions:
     workers: int = 1
     refine: bool = False
     calibrate: bool = True
+    orient: bool = True
     display: bool = True
     unit: UnitOptions = field(default_factory=UnitOptions)
     plan: PlanOptions = field(default_factory=PlanOptions)
@@ -108,6 +115,7 @@ class RunSummary:
     refine: bool
     warning: str | None = None
     calibration: dict[str, Any] | None = None
+    orientation: dict[str, Any] | None = None
 
     @property
     def texels_observed(self) -> int:
@@ -241,6 +249,7 @@ class JobPlan:
     n_model_buildings: int = 0
     warning: str | None = None
     calibration: SequenceCalibration | None = None
+    orientation: dict[str, Any] = field(default_factory=lambda: {"run": False})
 
 
 def plan_job(
@@ -293,6 +302,16 @@ def plan_job(
             report("calibrate", 1, 1)
             timings["calibrate"] = time.perf_counter() - t0
 
+        # close-range sequences: every frame oriented in blocks before the units
+        sequence, orientation = None, {"run": False}
+        if options.refine and options.orient and calibration is not None and calibration.accepted \
+                and orients(manifest.platform):
+            t0 = time.perf_counter()
+            report("orient", 0, 1)
+            sequence, orientation = orient_priors(buildings, manifest, unit_priors, pkg.frames, accuracy,
+                                                  lambda done, total: report("orient", done, total))
+            timings["orient"] = time.perf_counter() - t0
+
         t0 = time.perf_counter()
         report("plan", 0, 1)
         unit_options = options.unit_options()
@@ -315,6 +334,7 @@ def plan_job(
             targets=None
             if options.buildings is None
             else [b.id for b in buildings if b.id in options.buildings],
+            sequence=sequence,
         )
         report("plan", 1, 1)
         timings["plan"] = time.perf_counter() - t0
@@ -323,6 +343,7 @@ def plan_job(
         raise
     plan = JobPlan(Path(city_gml), Path(package), header, buildings, pkg, priors, units, len(ids))
     plan.calibration = calibration
+    plan.orientation = orientation
     plan.warning = resolution_warning(plan, options)
     return plan
 
@@ -383,6 +404,7 @@ def _run_planned(
         "package": str(package),
         "refine": options.refine,
         "calibrate": plan.calibration is not None,
+        "sequence_orientation": plan.orientation,
         "workers": options.workers,
         "buildings_in_model": plan.n_model_buildings,
         "buildings_near_the_cameras": len(buildings),
@@ -419,6 +441,7 @@ def _run_planned(
         refine=options.refine,
         warning=plan.warning,
         calibration=calibration,
+        orientation=plan.orientation,
     )
 
 

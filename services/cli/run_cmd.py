@@ -16,6 +16,7 @@ from services.runner import STAGES, RunError, RunOptions, RunSummary, refine_ava
 _LABELS = {
     "ingest": "read model and package",
     "calibrate": "calibrate the sequence",
+    "orient": "orient the sequence",
     "plan": "plan building units",
     "units": "orient and texture buildings",
     "write": "write results",
@@ -85,7 +86,7 @@ def run_with_progress(
         tasks = {
             s: bars.add_task(_LABELS[s], total=None, start=False)
             for s in STAGES
-            if s != "calibrate" or calibrating
+            if s not in ("calibrate", "orient") or calibrating
         }
 
         def progress(stage: str, done: int, total: int) -> None:
@@ -112,6 +113,12 @@ def run(
         help="With refinement: skip the sequence calibration (boresight, GNSS offset, lever arm, "
         "time delay) and refine each building from the raw priors.",
     ),
+    no_orient: bool = typer.Option(
+        False,
+        "--no-orient",
+        help="With refinement: skip the sequence orientation of drives (feature tracks and a block "
+        "adjustment of all frames with the model before the buildings).",
+    ),
     no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
 ) -> None:
     """Texture every building the sequence sees and write the results folder."""
@@ -125,6 +132,7 @@ def run(
         workers=workers,
         refine=refine,
         calibrate=not no_calibrate,
+        orient=not no_orient,
         display=not no_display,
     )
     try:
@@ -147,6 +155,8 @@ def run(
         console.print("poses: GNSS/INS priors (refinement " + ("off)" if no_refine else "not installed)"))
     elif summary.calibration is not None:
         console.print(calibration_line(summary.calibration))
+        if summary.orientation and summary.orientation.get("run"):
+            console.print(orientation_line(summary.orientation))
 
 
 def calibration_line(cal: dict[str, Any]) -> str:
@@ -162,6 +172,14 @@ def calibration_line(cal: dict[str, Any]) -> str:
         f"time delay {cal.get('time_delay_s', 0.0):+.3f} s, {cal.get('frames', 0)} frames, "
         f"edge support {cal.get('mean_edge_support', 0.0):.2f}"
     )
+
+
+def orientation_line(doc: dict[str, Any]) -> str:
+    """One line on the sequence orientation of report.json (`sequence_orientation` block)."""
+    blocks = doc.get("blocks", [])
+    ok = sum(1 for b in blocks if b.get("accepted"))
+    return (f"sequence orientation: {doc.get('frames_oriented', 0)} of {doc.get('frames', 0)} frames "
+            f"oriented in {ok} of {len(blocks)} blocks")
 
 
 def register(root: typer.Typer) -> None:

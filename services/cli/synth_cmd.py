@@ -99,7 +99,7 @@ def synth(
     psf: float = typer.Option(0.6, "--psf", help="Gaussian blur sigma, px."),
     column_noise: float = typer.Option(0.03, "--column-noise", help="Fixed-pattern column noise, K."),
     vignetting: float = typer.Option(-0.2, "--vignetting", help="Offset at the corners, K."),
-    supersample: int = typer.Option(3, "--supersample", help="Area sampling: N × N rays per pixel (at edges)."),
+    supersample: int = typer.Option(3, "--supersample", help="Area sampling: N x N rays per pixel at edges."),
     width: int = typer.Option(640, "--width", help="Image width, px."),
     image_height: int = typer.Option(512, "--image-height", help="Image height, px."),
     hfov: float = typer.Option(45.0, "--hfov", help="Horizontal field of view, deg."),

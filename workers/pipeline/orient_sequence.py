@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,9 +62,10 @@ class SequenceOrientationOptions:
     block: BlockOptions = field(default_factory=BlockOptions)
     # the prior's σ (metres, degrees) come from the accuracy as for a building unit
     coregister: CoregisterOptions = field(default_factory=CoregisterOptions)
-    # windows of consecutive frames, their overlap; a gap longer than this splits the sequence
-    window_frames: int = 60
-    overlap_frames: int = 15
+    # windows of consecutive frames, their overlap (a frame near a window's end has less context:
+    # it takes its pose from the neighbouring window), a gap longer than this splits the sequence
+    window_frames: int = 120
+    overlap_frames: int = 30
     max_gap_s: float = 1.0
 
 
@@ -143,6 +144,7 @@ def orient_sequence(
     times: Mapping[int, float],
     accuracy: Accuracy | None,
     options: SequenceOrientationOptions = SequenceOrientationOptions(),
+    progress: Callable[[int, int], None] | None = None,
 ) -> SequenceOrientation:
     """Orient every frame of the sequence in blocks (see the module docstring).
 
@@ -155,6 +157,7 @@ def orient_sequence(
         times: frame times in seconds.
         accuracy: a-priori σ of the priors (calibrated accuracy, or the manifest's).
         options: parameters.
+        progress: called with (windows done, windows) after each window.
     """
     frames = [int(f) for f in frames]
     poses = {f: prior[f] for f in frames}
@@ -168,7 +171,10 @@ def orient_sequence(
         return SequenceOrientation(poses, covariance, blocks, _empty_tracks())
     # position of each frame in the window that owns it: distance to the window's ends
     best: dict[int, int] = {}
-    for a, b in windows([times[f] for f in frames], options):
+    spans = windows([times[f] for f in frames], options)
+    for k_win, (a, b) in enumerate(spans):
+        if progress is not None:
+            progress(k_win, len(spans))
         block = frames[a:b]
         images = {f: frame_source.load(f) for f in block}
         info = prior_information(prior[block[len(block) // 2]], accuracy, options.coregister)
@@ -197,6 +203,8 @@ def orient_sequence(
                 poses[f] = res.poses[f]
                 covariance[f] = res.covariance[f]
         parts.append(_with_points(tracks, res.points))
+    if progress is not None:
+        progress(len(spans), len(spans))
     return SequenceOrientation(poses, covariance, blocks, _concat(parts))
 
 

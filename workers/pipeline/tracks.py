@@ -408,6 +408,7 @@ def track_sequence(
         if len(cand):
             ok, X, poly, nrm = _on_surface(camera, raycaster, poses[f], cand, options)
             cand, X, poly, nrm = cand[ok], X[ok], poly[ok], nrm[ok]
+        if len(cand):
             ids = np.arange(len(pts), len(pts) + len(cand))
             pts.extend(X)
             nrms.extend(nrm)

@@ -16,6 +16,7 @@ import logging
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,6 +36,10 @@ from workers.pipeline.visibility import (
     buried_texels,
     pixel_rays,
 )
+
+if TYPE_CHECKING:  # the orientation modules are optional: only their types are named here
+    from workers.pipeline.coregister_block import UnitSequence
+    from workers.pipeline.orient_sequence import SequenceOrientation
 
 _log = logging.getLogger(__name__)
 
@@ -112,6 +117,8 @@ class BuildingUnit:
         radiometry: DN encoding of the input (and of the output tiles).
         accuracy: a-priori GNSS/INS accuracy (weights for refinement), if known.
         options: per-stage options.
+        sequence: the sequence orientation's poses, covariances and tracks for `frames`
+            (`coregister_block.UnitSequence`), when the orient stage ran: refinement starts there.
     """
 
     building: Building
@@ -124,6 +131,7 @@ class BuildingUnit:
     radiometry: Radiometry
     accuracy: Accuracy | None = None
     options: UnitOptions = field(default_factory=UnitOptions)
+    sequence: UnitSequence | None = None
 
     def __post_init__(self) -> None:
         if not (len(self.frames) == len(self.poses) == len(self.times)):
@@ -146,6 +154,7 @@ def plan_units(
     options: UnitOptions = UnitOptions(),
     plan: PlanOptions = PlanOptions(),
     targets: Sequence[str] | None = None,
+    sequence: SequenceOrientation | None = None,
 ) -> list[BuildingUnit]:
     """Decide which frames see which building and which neighbours can occlude it.
 
@@ -154,6 +163,7 @@ def plan_units(
         poses: one prior pose per frame, recording order; `frame_indices` gives their indices
             (default `0..N-1`), `times` their stamps (default the indices).
         targets: ids of the buildings to make units for (default all).
+        sequence: the orient stage's result; each unit gets its part (`for_frames`).
 
     Returns one unit per target building seen by at least `plan.min_frames` frames, in the
     order of `buildings`. The test per frame is a conservative bounding-box frustum test, then a
@@ -212,6 +222,7 @@ def plan_units(
                 radiometry=radiometry,
                 accuracy=accuracy,
                 options=options,
+                sequence=None if sequence is None else sequence.for_frames([idx[f] for f in fr]),
             )
         )
     return units
@@ -289,6 +300,8 @@ def _call_refine(
     coregister: object, unit: BuildingUnit, raycaster: RayCaster, prior: dict[int, Pose], extra: dict
 ) -> Mapping[int, object]:
     """`coregister.refine_building` for the unit's frames."""
+    if unit.sequence is not None:
+        extra = {**extra, "sequence": unit.sequence}
     return coregister.refine_building(  # type: ignore[attr-defined]
         unit.camera,
         unit.building,
