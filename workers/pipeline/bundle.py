@@ -79,13 +79,13 @@ class BundleOptions:
     # iteration
     edges: bool = True
     edge_weight: float = 1.0
-    edge_radius_start_px: float = 8.0
+    edge_radius_start_px: float = 16.0
     radius_decay: float = 0.75
     revisibility_every: int = 4
     # Gauss-Newton iterations before and after the outlier removal; Levenberg damping (a share of
     # the diagonal: beware, it also slows the weak directions down, a tilt traded against a height
     # that only a few inclined edges see; the steps are bounded anyway, `_bounded`)
-    iterations: int = 10
+    iterations: int = 12
     polish_iterations: int = 4
     damping: float = 0.0
     # a phase has converged when no frame moves by more than this (metres; rotations as the

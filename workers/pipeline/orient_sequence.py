@@ -18,10 +18,11 @@ one building's frames alone would lose exactly those neighbours.
 Method: the frames are split where the time between two frames exceeds `max_gap_s`, then into
 windows of `window_frames` overlapping by `overlap_frames`; each window is one block
 (`coregister_block.adjust_block`: tracks, bundle adjustment against the scene wireframe with a
-common prior error of the block and per-frame noise, tracked again when the block moved). A
-window whose adjustment does not find the model (edge support, see `coregister_block`) keeps its
-priors. A frame in two windows takes the pose of the one where it lies further from the window's
-ends.
+common prior error of the block and per-frame noise, tracked again when the ties fit badly). A
+frame whose neighbours with model edges do not support the adjusted poses
+(`coregister_block.anchoring`) keeps its prior; a frame with no model edges around it keeps the
+adjusted pose and its covariance (the units decide whether it is determined well enough). A
+frame in two windows takes the pose of the one where it lies further from the window's ends.
 """
 
 from __future__ import annotations
@@ -35,7 +36,13 @@ import numpy as np
 
 from workers.pipeline.camera import Camera
 from workers.pipeline.coregister import CoregisterOptions, prior_information
-from workers.pipeline.coregister_block import BlockOptions, UnitSequence, adjust_block, block_reason
+from workers.pipeline.coregister_block import (
+    BlockOptions,
+    UnitSequence,
+    adjust_block,
+    anchoring,
+    block_reason,
+)
 from workers.pipeline.model_edges import WireframeError, mesh_wireframe
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
@@ -182,12 +189,18 @@ def orient_sequence(
         res, tracks = adjust_block(camera, scene_wf, raycaster, block, images, prior, prior, info,
                                    options.block, co.fit, co.edges, co.features)
         reason = block_reason(block, prior, res, options.block)
+        anchor = anchoring(block, res, options.block) if not reason else {}
+        if not reason and not any(anchor.values()):
+            reason = "the block found the model nowhere (edge support)"
         sup = [res.edge_support[f] for f in block if f in res.edge_support]
         nul = [res.null_support[f] for f in block if f in res.null_support]
+        taken = [f for f in block if anchor.get(f) is not False]
         blocks.append({
             "frames": [block[0], block[-1]],
             "accepted": not reason,
             "reason": reason,
+            "frames_anchored": sum(1 for f in block if anchor.get(f)),
+            "frames_without_edges_around": sum(1 for f in block if anchor.get(f, False) is None),
             "mean_edge_support": round(float(np.mean(sup)), 3) if sup else None,
             "null_support": round(float(np.mean(nul)), 3) if nul else None,
             "sigma0": round(float(res.sigma0), 3),
@@ -198,7 +211,7 @@ def orient_sequence(
             continue
         for k, f in enumerate(block):
             depth = min(k, len(block) - 1 - k)
-            if depth >= best.get(f, -1):
+            if f in taken and depth >= best.get(f, -1):
                 best[f] = depth
                 poses[f] = res.poses[f]
                 covariance[f] = res.covariance[f]
