@@ -348,5 +348,8 @@ def test_cli_no_calibrate_turns_the_stage_off(
     for flags, want in (([], True), (["--no-calibrate"], False)):
         res = CliRunner().invoke(app, ["run", str(gml), str(pkg), "-o", str(tmp_path / "o"), *flags])
         assert res.exit_code == 0, res.output
-        assert seen[-1].refine is True and seen[-1].calibrate is want
+        assert seen[-1].refine is True and seen[-1].calibrate is want and seen[-1].orient is True
     assert "calibration: off" in res.output
+    res = CliRunner().invoke(app, ["run", str(gml), str(pkg), "-o", str(tmp_path / "o"), "--no-orient"])
+    assert res.exit_code == 0, res.output
+    assert seen[-1].orient is False and seen[-1].calibrate is True
