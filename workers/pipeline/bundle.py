@@ -216,7 +216,7 @@ def bundle_adjust(
     uv_obs = tracks.uv[m_obs]
     X = tracks.point.copy()
     nrm = tracks.normal
-    d_plane = np.sum(nrm * tracks.point, axis=1)
+    d_plane = np.asarray(tracks.offset)
     inl = np.ones(len(t_obs), bool)
     edges: dict[int, _EdgeFrame] = {}
     if options.edges and wireframe is not None:
@@ -255,18 +255,17 @@ def bundle_adjust(
         except np.linalg.LinAlgError:
             break
         dx = cho_solve(c, b)
-        big = 0.0
+        steps = np.array([_bounded(dx[6 * k:6 * k + 6]) for k in range(n)]).reshape(n, 6)
         for f in frames:
-            k = 6 * slot[f]
-            step = _bounded(dx[k:k + 6])
-            poses[f] = apply_delta(poses[f], step)
-            big = max(big, float(np.linalg.norm(step[3:])), float(np.linalg.norm(step[:3])) * 10.0)
+            poses[f] = apply_delta(poses[f], steps[slot[f]])
+        big = max(float(np.max(np.linalg.norm(steps[:, 3:], axis=1))),
+                  10.0 * float(np.max(np.linalg.norm(steps[:, :3], axis=1)))) if n else 0.0
         if nc:
             common = common + dx[6 * n:]
-        # back-substitution of the points: ΔX_t = V_t⁻¹ (b_t − Σ W_oᵀ Δ_f(o))
+        # back-substitution of the points: ΔX_t = V_t⁻¹ (b_t − Σ W_oᵀ Δ_f(o)), with the steps taken
         if len(Wt):
             fi, ti = f_obs[inl], t_obs[inl]
-            dpose = dx[:6 * n].reshape(n, 6)[fi]
+            dpose = steps[fi]
             rhs = bt.copy()
             np.add.at(rhs, ti, -np.einsum("oij,oi->oj", Wt, dpose))
             X = X + np.einsum("tij,tj->ti", V_inv, rhs)

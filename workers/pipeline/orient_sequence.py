@@ -227,8 +227,10 @@ def _empty_tracks() -> Tracks:
 
 
 def _with_points(tracks: Tracks, points: np.ndarray) -> Tracks:
-    """`tracks` with their points replaced by the adjusted `points` `(T, 3)`."""
-    return Tracks(tracks.track, tracks.frame, tracks.uv, np.asarray(points), tracks.normal, tracks.polygon)
+    """`tracks` with their points replaced by the adjusted `points` `(T, 3)` (the model planes
+    stay)."""
+    return Tracks(tracks.track, tracks.frame, tracks.uv, np.asarray(points), tracks.normal, tracks.polygon,
+                  tracks.offset)
 
 
 def _concat(parts: list[Tracks]) -> Tracks:
@@ -243,6 +245,7 @@ def _concat(parts: list[Tracks]) -> Tracks:
         point=np.concatenate([p.point for p in parts]),
         normal=np.concatenate([p.normal for p in parts]),
         polygon=np.concatenate([p.polygon for p in parts]),
+        offset=np.concatenate([np.asarray(p.offset) for p in parts]),
     )
 
 
@@ -261,4 +264,5 @@ def _subset(tracks: Tracks, keep: np.ndarray) -> Tracks:
         point=tracks.point[alive],
         normal=tracks.normal[alive],
         polygon=tracks.polygon[alive],
+        offset=np.asarray(tracks.offset)[alive],
     )

@@ -87,9 +87,11 @@ class Tracks:
         track: `(M,)` int track index of each observation.
         frame: `(M,)` int frame index of each observation.
         uv: `(M, 2)` float64 pixel coordinates (pixel centres at integers).
-        point: `(T,)`-by-3 `(T, 3)` world point of each track: its first view's ray on the model.
+        point: `(T, 3)` world point of each track: its first view's ray on the model, or where an
+            adjustment put it.
         normal: `(T, 3)` unit normal of the model plane the point lies on (world).
         polygon: `(T,)` int model polygon index (`SceneMesh.polygon_ids`).
+        offset: `(T,)` the model plane: `normal · X = offset` (metres); None: through `point`.
     """
 
     track: np.ndarray
@@ -98,6 +100,11 @@ class Tracks:
     point: np.ndarray
     normal: np.ndarray
     polygon: np.ndarray
+    offset: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.offset is None:
+            object.__setattr__(self, "offset", np.sum(self.normal * self.point, axis=1))
 
     @property
     def n_tracks(self) -> int:
