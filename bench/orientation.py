@@ -337,11 +337,14 @@ def texture_run(platform: str, frames: int, buildings: int, seed: int, model: st
                         model_path=str(gml))
     res = synthesize(blds, opts)
     pkg = write_synthetic_package(res, root / "seq")
-    out: dict = {"model": model}
+    # texels per metre: 10 for drives (about 1.5 cm per pixel at 11 m), 2.5 for flights (about
+    # 0.35 m per pixel at 200 m: finer texels would get no observation)
+    resolution = 10.0 if platform == "drive" else 2.5
+    out: dict = {"model": model, "resolution_px_per_m": resolution}
     for refine in (True, False):
         dest = root / ("refined" if refine else "prior")
         t0 = time.perf_counter()
-        run_job(gml, pkg, dest, RunOptions(refine=refine, display=False))
+        run_job(gml, pkg, dest, RunOptions(resolution_px_per_m=resolution, refine=refine, display=False))
         wall = time.perf_counter() - t0
         acc = texture_accuracy(dest, res)
         acc.update(orientation_accuracy(dest, res))
