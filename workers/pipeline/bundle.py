@@ -20,7 +20,7 @@ Unknowns: per frame a correction `δ_f = (ω_cam, dC_world)` of its pose
   `plane_sigma_m`, re-weighted by that distance each iteration (Tukey: points off the model, on
   trees, cars or recessed windows, lose their weight);
 - model edges: the edge-normal distances of every visible wireframe sample to the strongest
-  image edge along the normal (`coregister_frame._normal_equations`, Tukey weights, search
+  image edge along the normal (`coregister_frame.normal_equations`, Tukey weights, search
   radius shrinking from `edge_radius_start_px`), weighted by `edge_weight`;
 - priors: the GNSS/INS errors of a block's frames are not independent (Kolecki et al.; the
   calibration leaves a common error of decimetres, the white noise and vibration vary from frame
@@ -45,13 +45,8 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_frame import (
-    FrameFitOptions,
-    _normal_equations,
-    _visible,
-    edge_support,
-    frame_box,
-)
+from workers.pipeline.coregister_edges import edge_support, frame_box, normal_equations, visible_samples
+from workers.pipeline.coregister_frame import FrameFitOptions
 from workers.pipeline.coregister_geometry import apply_delta, pose_delta, project_jacobian
 from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
@@ -159,7 +154,7 @@ def _edge_data(camera: Camera, wireframe: Wireframe, raycaster: RayCaster, frame
     """Image gradients around the projected wireframe of every frame that sees one."""
     out = {}
     for f in frames:
-        vis = _visible(wireframe, camera, poses[f], raycaster, eo, fo.max_samples)
+        vis = visible_samples(wireframe, camera, poses[f], raycaster, eo, fo.max_samples)
         if len(vis.points) < fo.min_samples:
             continue
         roi = frame_box(camera, poses[f], vis, margin)
@@ -240,12 +235,12 @@ def bundle_adjust(
             zero6 = np.zeros((6, 6))
             for f, ed in edges.items():
                 if it % options.revisibility_every == 0 and it > 0:
-                    ed.vis = _visible(wireframe, camera, poses[f], raycaster, edge_options,  # type: ignore[arg-type]
-                                      fit_options.max_samples)
+                    ed.vis = visible_samples(wireframe, camera, poses[f], raycaster, edge_options,  # type: ignore[arg-type]
+                                             fit_options.max_samples)
                 if ed.vis is None or len(ed.vis.points) < fit_options.min_samples:
                     continue
-                He, ge, *_ = _normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
-                                               fit_options.point_radius_min_px, poses[f], zero6, fo_it)
+                He, ge, *_ = normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
+                                              fit_options.point_radius_min_px, poses[f], zero6, fo_it)
                 k = 6 * slot[f]
                 S[k:k + 6, k:k + 6] += options.edge_weight * He
                 b[k:k + 6] += options.edge_weight * ge

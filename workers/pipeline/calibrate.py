@@ -31,7 +31,7 @@ Method:
    against the scene wireframe (oriented-gradient search over common image shifts and common
    world translations, then a robust adjustment), `l = 0`, `τ = 0`;
 3. Gauss-Newton of θ and the `ε_i` from every frame's edge-normal distances (1-D gradient search
-   along each projected edge sample, Tukey weights; `coregister_frame._normal_equations`) with a
+   along each projected edge sample, Tukey weights; `coregister_frame.normal_equations`) with a
    shrinking search radius; θ has a weighted prior of zero (`Accuracy` for `ω` and `b`,
    `lever_arm_sigma_m`, `time_delay_sigma_s`);
 4. accepted when the mean edge support of the frames reaches `min_mean_support`, at least
@@ -48,14 +48,14 @@ import numpy as np
 
 from workers.pipeline.calibrate_model import N_PARAMS, design, frame_motion
 from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_frame import (
-    FrameFitOptions,
-    _image_normals,
-    _normal_equations,
-    _visible,
+from workers.pipeline.coregister_edges import (
     edge_support,
     frame_box,
+    image_normals,
+    normal_equations,
+    visible_samples,
 )
+from workers.pipeline.coregister_frame import FrameFitOptions
 from workers.pipeline.coregister_geometry import apply_delta
 from workers.pipeline.coregister_joint import JointOptions, _gradient, _score, joint_fit
 from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
@@ -291,7 +291,7 @@ def calibrate_sequence(
     # long sequences: only an evenly spread subset is looked at
     n_look = min(len(frames), 4 * options.max_frames)
     for i in (frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n_look).round().astype(int))):
-        vis = _visible(wireframe, camera, priors[i], raycaster, options.edges, 64)
+        vis = visible_samples(wireframe, camera, priors[i], raycaster, options.edges, 64)
         if len(vis.points) >= fo.min_samples:
             usable.append(i)
     if len(usable) < options.min_supported_frames:
@@ -307,8 +307,8 @@ def calibrate_sequence(
         return replace(zero, reason=f"no common correction: {start.reason}", frames=tuple(pick))
     data = []
     for i in pick:
-        vis = _visible(wireframe, camera, apply_delta(priors[i], start.delta), raycaster, options.edges,
-                       fo.max_samples)
+        vis = visible_samples(wireframe, camera, apply_delta(priors[i], start.delta), raycaster,
+                              options.edges, fo.max_samples)
         if len(vis.points) < fo.min_samples:
             continue
         roi = frame_box(camera, apply_delta(priors[i], start.delta), vis,
@@ -348,7 +348,7 @@ def _delay_search(
     for f in data:
         col = f.A[:, 9]
         pose = apply_delta(f.prior, f.A @ theta0)
-        vis = _visible(wireframe, camera, pose, raycaster, options.edges, options.fit.max_samples)
+        vis = visible_samples(wireframe, camera, pose, raycaster, options.edges, options.fit.max_samples)
         if len(vis.points) < options.fit.min_samples:
             continue
         # the delay's effect on this frame, pixels per second, at the samples' median depth
@@ -360,7 +360,7 @@ def _delay_search(
         px_per_s = camera.fx * (np.linalg.norm(col[:3]) + np.linalg.norm(col[3:]) / zmed)
         if px_per_s * options.delay_step_s < 0.5:
             continue
-        nrm = _image_normals(camera, pose, vis, uv)[ok]
+        nrm = image_normals(camera, pose, vis, uv)[ok]
         cand = []
         for tau in taus:
             th = theta0.copy()
@@ -389,8 +389,8 @@ def _adjust(
     for it in range(options.iterations):
         poses = {f.index: apply_delta(f.prior, f.A @ theta + eps[f.index]) for f in data}
         if it % 4 == 0:
-            vis = {f.index: _visible(wireframe, camera, poses[f.index], raycaster, options.edges,
-                                     fo.max_samples) for f in data}
+            vis = {f.index: visible_samples(wireframe, camera, poses[f.index], raycaster, options.edges,
+                                            fo.max_samples) for f in data}
         R_e = max(fo.edge_radius_min_px, options.radius_start_px * options.radius_decay**it)
         fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
         S = P.copy()
@@ -399,8 +399,8 @@ def _adjust(
         for f in data:
             Hi, gi = zero6, np.zeros(6)
             if len(vis[f.index].points) >= fo.min_samples:
-                Hi, gi, *_ = _normal_equations(camera, poses[f.index], vis[f.index], f.feats, none, R_e,
-                                               fo.point_radius_min_px, poses[f.index], zero6, fo_it)
+                Hi, gi, *_ = normal_equations(camera, poses[f.index], vis[f.index], f.feats, none, R_e,
+                                              fo.point_radius_min_px, poses[f.index], zero6, fo_it)
             B = np.linalg.inv(Hi + F)
             c = gi - F @ eps[f.index]
             HB = Hi @ B

@@ -23,7 +23,7 @@ Two stages:
    a position bias shifts near and far facades differently, which no common image shift explains;
 2. **fine**: Gauss-Newton of the six common parameters (plus per-frame deviations `ε_i` with
    a-priori σ `frame_sigma_*`, eliminated by a Schur complement) from every frame's edge-normal distances
-   (1-D gradient search along each projected edge sample, `coregister_frame._normal_equations`,
+   (1-D gradient search along each projected edge sample, `coregister_frame.normal_equations`,
    Tukey weights) with a shrinking search radius, the prior a weighted observation. Each
    candidate is run on a few frames; the one with the highest edge support is refined on all.
 """
@@ -38,14 +38,14 @@ import numpy as np
 
 from workers.pipeline.camera import Camera
 from workers.pipeline.coregister_coarse import shift_pose
-from workers.pipeline.coregister_frame import (
-    FrameFitOptions,
-    _image_normals,
-    _normal_equations,
-    _visible,
+from workers.pipeline.coregister_edges import (
     edge_support,
     frame_box,
+    image_normals,
+    normal_equations,
+    visible_samples,
 )
+from workers.pipeline.coregister_frame import FrameFitOptions
 from workers.pipeline.coregister_geometry import apply_delta, pose_delta
 from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
@@ -161,7 +161,7 @@ def joint_fit(
     margin = options.coarse_radius_px + options.radius_start_px + fit_options.roi_margin_px
     data: list[_Frame] = []
     for i in pick:
-        vis = _visible(wireframe, camera, prior[i], raycaster, edge_options, fit_options.max_samples)
+        vis = visible_samples(wireframe, camera, prior[i], raycaster, edge_options, fit_options.max_samples)
         if len(vis.points) < fit_options.min_samples:
             continue
         roi = frame_box(camera, prior[i], vis, margin)
@@ -251,14 +251,14 @@ def _coarse_candidates(
     samples = []
     pick = np.unique(np.linspace(0, len(data) - 1, min(len(data), options.coarse_frames)).round().astype(int))
     for fr in (data[k] for k in pick):
-        vis = _visible(wireframe, camera, fr.prior, raycaster, wide, options.coarse_samples)
+        vis = visible_samples(wireframe, camera, fr.prior, raycaster, wide, options.coarse_samples)
         if len(vis.points) < fo.min_samples:
             continue
         uv, z = fr.prior.project(camera, vis.points)
         ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
         if ok.sum() < fo.min_samples:
             continue
-        nrm = _image_normals(camera, fr.prior, vis, uv)[ok]
+        nrm = image_normals(camera, fr.prior, vis, uv)[ok]
         samples.append((fr, vis.points[ok], uv[ok], nrm, vis.weight[ok], float(np.median(z[ok]))))
     out = [np.zeros(6)]
     if not samples:
@@ -331,8 +331,8 @@ def _fine(
     for it in range(iterations):
         poses = {fr.index: apply_delta(fr.prior, x[fr.index]) for fr in data}
         if it % 4 == 0:
-            vis = {fr.index: _visible(wireframe, camera, poses[fr.index], raycaster, eo, fo.max_samples)
-                   for fr in data}
+            vis = {fr.index: visible_samples(wireframe, camera, poses[fr.index], raycaster, eo,
+                                             fo.max_samples) for fr in data}
         R_e = max(fo.edge_radius_min_px, r0 * options.radius_decay**it)
         fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
         Hc = prior_info.copy()
@@ -341,8 +341,8 @@ def _fine(
             v = vis[fr.index]
             Hi, gi = zero6, np.zeros(6)
             if len(v.points) >= fo.min_samples:
-                Hi, gi, *_ = _normal_equations(camera, poses[fr.index], v, fr.feats, none, R_e,
-                                               fo.point_radius_min_px, poses[fr.index], zero6, fo_it)
+                Hi, gi, *_ = normal_equations(camera, poses[fr.index], v, fr.feats, none, R_e,
+                                              fo.point_radius_min_px, poses[fr.index], zero6, fo_it)
             Hc += Hi
             blocks[fr.index] = (Hi, gi)
         S = prior_info.copy()

@@ -1,0 +1,231 @@
+"""Edge observations of one frame against a model wireframe: what the orientation stages share.
+
+In: a `Camera`, a pose, a `Wireframe` (`model_edges`) and the `RayCaster` of the scene, a frame's
+`ImageFeatures` (`features`), `FrameFitOptions` (`coregister_frame`). Out: the visible edge
+samples (thinned), the frame box around them, the 1-D search along each projected edge's normal
+for the strongest image edge (signed sub-pixel offsets), the normal equations of the six
+exterior-orientation parameters from those offsets (Tukey weights) and from corner-to-point
+matches, and the edge support of a pose (share of samples on an image edge, and the same with
+the samples moved off their edges: the null support).
+
+Poses are corrected by `δ = (ω, dC)` with `R_world_from_cam ← R · exp([ω]×)` (ω in the camera
+frame, radians) and `C ← C + dC` (world, metres), `coregister_geometry`. Used by the per-frame fit
+(`coregister_frame`), the joint fit (`coregister_joint`), the calibration (`calibrate`) and the
+bundle adjustment (`bundle`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from workers.pipeline.camera import Camera
+from workers.pipeline.coregister_geometry import pose_delta, project_jacobian
+from workers.pipeline.features import ImageFeatures
+from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
+from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+
+if TYPE_CHECKING:  # the options live with the per-frame fit, which imports this module
+    from workers.pipeline.coregister_frame import FrameFitOptions
+
+__all__ = [
+    "edge_search",
+    "edge_support",
+    "frame_box",
+    "image_normals",
+    "match_corners",
+    "matched_edges",
+    "normal_equations",
+    "tukey",
+    "visible_samples",
+]
+
+
+def edge_search(
+    feats: ImageFeatures, uv: np.ndarray, normal: np.ndarray, radius: float, options: FrameFitOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """1-D search along `normal` `(N, 2)` from `uv` `(N, 2)` within ±`radius` px.
+
+    Returns (signed offset `(N,)` px to the chosen edge (sub-pixel), found `(N,)` bool). The edge is
+    the strongest gradient component along the normal (gradient within `edge_max_angle_deg` of
+    it, above `edge_min_gradient_rel` × the ROI scale), mildly favouring small offsets.
+    """
+    n = len(uv)
+    if n == 0:
+        return np.zeros(0), np.zeros(0, bool)
+    R = int(np.ceil(radius))
+    k = np.arange(-R, R + 1, dtype=np.float64)
+    u0, v0 = feats.roi[0], feats.roi[1]
+    pu = uv[:, 0:1] - u0 + k[None, :] * normal[:, 0:1]
+    pv = uv[:, 1:2] - v0 + k[None, :] * normal[:, 1:2]
+    h, w = feats.gx.shape
+    inside = (pu >= 0) & (pu <= w - 1) & (pv >= 0) & (pv <= h - 1)
+    g = cv2.remap(feats.grad, pu.astype(np.float32), pv.astype(np.float32), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE)
+    gx, gy = g[..., 0].astype(np.float64), g[..., 1].astype(np.float64)
+    gn = np.abs(gx * normal[:, 0:1] + gy * normal[:, 1:2])
+    gm = np.hypot(gx, gy)
+    cos_lim = np.cos(np.radians(options.edge_max_angle_deg))
+    valid = inside & (gn >= options.edge_min_gradient_rel * feats.grad_ref) & (gn >= cos_lim * gm)
+    penalty = np.exp(-0.5 * (k[None, :] / (options.edge_distance_scale * max(R, 1))) ** 2)
+    score = np.where(valid, gn * penalty, -1.0)
+    # only interior local maxima of the gradient along the search line (a rising gradient at the
+    # end of the line is no edge within the radius)
+    left = np.concatenate([np.full((n, 1), np.inf), gn[:, :-1]], axis=1)
+    right = np.concatenate([gn[:, 1:], np.full((n, 1), np.inf)], axis=1)
+    score = np.where((gn >= left) & (gn >= right), score, -1.0)
+    j = np.argmax(score, axis=1)
+    found = score[np.arange(n), j] > 0
+    # parabolic sub-pixel refinement of the gradient peak
+    jl = np.clip(j - 1, 0, 2 * R)
+    jr = np.clip(j + 1, 0, 2 * R)
+    gl, gc, gr = gn[np.arange(n), jl], gn[np.arange(n), j], gn[np.arange(n), jr]
+    den = gl - 2 * gc + gr
+    interior = (np.abs(den) > 1e-12) & (jl != j) & (jr != j)
+    sub = np.where(interior, 0.5 * (gl - gr) / np.where(den == 0, 1, den), 0)
+    return k[j] + np.clip(sub, -0.5, 0.5), found
+
+
+def image_normals(camera: Camera, pose: Pose, vis: VisibleWireframe, uv: np.ndarray) -> np.ndarray:
+    """Unit image normals `(N, 2)` of the projected edges at the samples."""
+    step = 0.05
+    uv2, _ = pose.project(camera, vis.points + step * vis.direction)
+    t = uv2 - uv
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    return np.stack([-t[:, 1], t[:, 0]], axis=1)
+
+
+def tukey(r: np.ndarray, c: float) -> np.ndarray:
+    x = np.abs(r) / c
+    return np.where(x < 1, (1 - x * x) ** 2, 0.0)
+
+
+def match_corners(
+    uv_c: np.ndarray, points: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest image point `(K, 2)` within `radius` of each projected corner `(M, 2)` -> (index, ok)."""
+    if len(uv_c) == 0 or len(points) == 0:
+        return np.zeros(len(uv_c), int), np.zeros(len(uv_c), bool)
+    d, j = cKDTree(points).query(uv_c, k=1)
+    return np.asarray(j, dtype=int), np.asarray(d) <= radius
+
+
+def visible_samples(
+    wireframe: Wireframe, camera: Camera, pose: Pose, raycaster: RayCaster, edge_options: EdgeOptions,
+    max_samples: int,
+) -> VisibleWireframe:
+    """`visible_wireframe` thinned to at most `max_samples` edge samples (evenly, per edge order)."""
+    vis = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+    n = len(vis.points)
+    if n <= max_samples:
+        return vis
+    keep = np.unique(np.linspace(0, n - 1, max_samples).round().astype(int))
+    return replace(vis, points=vis.points[keep], edge=vis.edge[keep], direction=vis.direction[keep],
+                   weight=vis.weight[keep])
+
+
+def frame_box(
+    camera: Camera, pose: Pose, vis: VisibleWireframe, margin: float
+) -> tuple[int, int, int, int] | None:
+    """Pixel box `(u0, v0, u1, v1)` around the projected samples grown by `margin`, clipped to the
+    frame; None when it is smaller than 16 px."""
+    uv, _ = pose.project(camera, vis.points)
+    uv = uv[np.isfinite(uv).all(axis=1)]
+    if len(uv) == 0:
+        return None
+    lo = np.floor(uv.min(axis=0) - margin)
+    hi = np.ceil(uv.max(axis=0) + margin) + 1
+    u0, v0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+    u1, v1 = min(int(hi[0]), camera.width), min(int(hi[1]), camera.height)
+    if u1 - u0 < 16 or v1 - v0 < 16:
+        return None
+    return u0, v0, u1, v1
+
+
+def normal_equations(
+    camera: Camera,
+    pose: Pose,
+    vis: VisibleWireframe,
+    feats: ImageFeatures,
+    points: np.ndarray,
+    R_e: float,
+    R_p: float,
+    prior: Pose,
+    prior_info: np.ndarray,
+    options: FrameFitOptions,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One linearisation: (H `(6,6)`, g `(6,)`, edge weights, edge offsets, found, corner
+    residuals `(M,2)`, corner weights `(M,)`, matched point index `(M,)`)."""
+    uv, _, J = project_jacobian(camera, pose, vis.points)
+    nrm = image_normals(camera, pose, vis, uv)
+    off, found = edge_search(feats, uv, nrm, R_e, options)
+    A = np.einsum("ni,nij->nj", nrm, J)
+    scale = 1.4826 * float(np.median(np.abs(off[found]))) if found.any() else R_e
+    c = max(options.tukey_min_px, 4.685 * scale)
+    unit = options.edge_sample_weight / options.sigma_edge_px**2
+    w_e = found * vis.weight * tukey(off, min(c, R_e)) * unit
+    H = (A * w_e[:, None]).T @ A + prior_info
+    delta_tot = pose_delta(prior, pose)
+    g = A.T @ (w_e * off) - prior_info @ delta_tot
+    rc = np.zeros((0, 2))
+    wc = np.zeros(0)
+    idx = np.zeros(0, int)
+    if len(vis.corner_points) and len(points):
+        uv_c, _, Jc = project_jacobian(camera, pose, vis.corner_points)
+        idx, ok = match_corners(uv_c, points, R_p)
+        rc = points[idx] - uv_c
+        dist = np.linalg.norm(rc, axis=1)
+        wc = ok * tukey(dist, max(R_p, options.tukey_min_px)) / options.sigma_point_px**2
+        H += np.einsum("m,mki,mkj->ij", wc, Jc, Jc)
+        g += np.einsum("m,mki,mk->i", wc, Jc, rc)
+    return H, g, w_e, off, found, rc, wc, idx
+
+
+def edge_support(
+    camera: Camera,
+    wireframe: Wireframe,
+    raycaster: RayCaster,
+    pose: Pose,
+    feats: ImageFeatures,
+    edge_options: EdgeOptions,
+    options: FrameFitOptions,
+    null_shift_px: float = 0.0,
+) -> tuple[float, float, np.ndarray, int] | None:
+    """How well the wireframe projected with `pose` meets the frame's edges, at the final edge
+    search radius: (support: class-weighted share of visible edge samples with an image edge
+    within `support_px`; null support: the same share with the samples moved ±`null_shift_px`
+    off their edges along the image normal, edge clutter and noise alone, 0 when
+    `null_shift_px` is 0; inlier edge offsets `(N,)` px; matched edges: edges with at least half
+    of their visible samples within `support_px`). None with fewer than `min_samples` visible
+    samples."""
+    v = visible_samples(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
+    if len(v.points) < options.min_samples:
+        return None
+    _, _, w, off, found, *_ = normal_equations(camera, pose, v, feats, np.zeros((0, 2)),
+                                               options.edge_radius_min_px, options.point_radius_min_px,
+                                               pose, np.zeros((6, 6)), options)
+    wsum = max(float(np.sum(v.weight)), 1e-12)
+    near = found & (np.abs(off) <= options.support_px)
+    support = float(np.sum(v.weight * near)) / wsum
+    null = 0.0
+    if null_shift_px > 0:
+        uv, _ = pose.project(camera, v.points)
+        nrm = image_normals(camera, pose, v, uv)
+        for sgn in (-1.0, 1.0):
+            o2, f2 = edge_search(feats, uv + sgn * null_shift_px * nrm, nrm, options.edge_radius_min_px,
+                                 options)
+            null += float(np.sum(v.weight * (f2 & (np.abs(o2) <= options.support_px)))) / wsum / 2.0
+    return support, null, off[w > 0], matched_edges(v.edge, near, len(wireframe.edges))
+
+
+def matched_edges(edge: np.ndarray, near: np.ndarray, n_edges: int) -> int:
+    """Edges with at least half of their visible samples (`edge` `(N,)` edge index per sample)
+    matched (`near` `(N,)` bool)."""
+    seen = np.bincount(edge, minlength=n_edges)
+    hit = np.bincount(edge[near], minlength=n_edges)
+    return int(np.sum((seen > 0) & (hit >= 0.5 * seen)))
