@@ -43,7 +43,7 @@ from workers.pipeline.coregister_frame import pose_delta
 from workers.pipeline.georef import prior_poses
 from workers.pipeline.model_edges import building_wireframe, visible_wireframe
 from workers.pipeline.orient_sequence import SEQUENCE_PLATFORMS, orient_sequence
-from workers.pipeline.orientation_quality import edge_points
+from workers.pipeline.orientation_quality import edge_points, tie_errors
 from workers.pipeline.orientation_quality import reprojection_rms as quality_rms
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
@@ -152,24 +152,11 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bo
 
 
 def tie_quality(tracks, camera, truth: list[Pose], caster: RayCaster) -> dict:
-    """The tie points of the sequence orientation against the truth: every later observation of a
-    track against its true correspondence (its first view's ray onto the model with the true
-    pose, projected with the true pose of the later frame); correctness = share within 1 px."""
-    first: dict[int, int] = {}
-    err = []
-    for k, t in enumerate(tracks.track):
-        k0 = first.setdefault(int(t), k)
-        if k0 == k:
-            continue
-        a, b = tracks.frame[k0], tracks.frame[k]
-        d = camera.bearing(tracks.uv[k0][None]) @ truth[a].R_world_from_cam.T
-        hit = caster.cast(truth[a].center[None], d)
-        if hit.hit[0]:
-            uv, _ = truth[b].project(camera, truth[a].center + hit.t[0] * d)
-            err.append(float(np.linalg.norm(uv[0] - tracks.uv[k])))
-    if not err:
+    """The tie points of the sequence orientation against the truth (`tie_errors`);
+    correctness = share within 1 px."""
+    e = tie_errors(tracks, camera, truth, caster)
+    if not len(e):
         return {"observations": 0}
-    e = np.array(err)
     per_frame = np.bincount(tracks.frame)
     return {"tracks": int(tracks.n_tracks), "observations": len(tracks.track),
             "median_error_px": round(float(np.median(e)), 3),

@@ -35,11 +35,12 @@ from scipy.spatial import cKDTree
 
 from db.citygml.reader import iter_buildings, read_header
 from db.sequence_package import SequencePackage, open_package
-from services.calibration_stage import calibrate_priors, calibration_documents, orient_priors, orients
 from services.results_files import write_results_folder, write_tile
+from services.sequence_stages import calibrate_priors, calibration_documents, orient_priors, orients
 from workers.pipeline.citymodel import Building, ModelHeader
 from workers.pipeline.georef import prior_poses
 from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster, build_scene_mesh
 from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.sequence import Radiometry
 from workers.pipeline.texel import TexelOptions
@@ -295,10 +296,13 @@ def plan_job(
 
         # the units refine from the calibrated priors; `priors` stays the manifest-only prior
         unit_priors, accuracy, calibration = priors, manifest.accuracy, None
+        caster = None  # over the buildings near the cameras, shared by the calibrate and orient stages
         if options.refine and options.calibrate:
             t0 = time.perf_counter()
             report("calibrate", 0, 1)
-            calibration, unit_priors, accuracy = calibrate_priors(buildings, manifest, priors, pkg.frames)
+            caster = RayCaster(build_scene_mesh(buildings)) if buildings else None
+            calibration, unit_priors, accuracy = calibrate_priors(buildings, manifest, priors, pkg.frames,
+                                                                  caster)
             report("calibrate", 1, 1)
             timings["calibrate"] = time.perf_counter() - t0
 
@@ -309,7 +313,7 @@ def plan_job(
             t0 = time.perf_counter()
             report("orient", 0, 1)
             sequence, orientation = orient_priors(buildings, manifest, unit_priors, pkg.frames, accuracy,
-                                                  lambda done, total: report("orient", done, total))
+                                                  lambda done, total: report("orient", done, total), caster)
             timings["orient"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from services.runner import STAGES, RunError, RunOptions, RunSummary, refine_available, run_job
+from services.runner import RunError, RunOptions, RunSummary, refine_available, run_job
 
 _LABELS = {
     "ingest": "read model and package",
@@ -82,18 +82,14 @@ def run_with_progress(
         TimeElapsedColumn(),
     )
     with Progress(*columns, console=console, transient=False) as bars:
-        calibrating = options.refine and options.calibrate
-        tasks = {
-            s: bars.add_task(_LABELS[s], total=None, start=False)
-            for s in STAGES
-            if s not in ("calibrate", "orient") or calibrating
-        }
+        # a bar per stage that runs, made when the stage first reports (calibrate and orient run
+        # only with refinement, orient only for close-range sequences)
+        tasks: dict[str, Any] = {}
 
         def progress(stage: str, done: int, total: int) -> None:
-            task = tasks[stage]
-            if done == 0:
-                bars.start_task(task)
-            bars.update(task, completed=done, total=max(total, 1))
+            if stage not in tasks:
+                tasks[stage] = bars.add_task(_LABELS.get(stage, stage), total=None)
+            bars.update(tasks[stage], completed=done, total=max(total, 1))
 
         return run_job(city, package, out, options, progress)
 

@@ -12,7 +12,10 @@ import pytest
 import workers.pipeline.orient_sequence as orient_module
 from tests.unit.orientation_scenes import ArraySource, perturb, reprojection_rms
 from workers.pipeline.coregister import CoregisterOptions, refine_building
+from workers.pipeline.coregister_block import UnitSequence, refine_from_sequence
+from workers.pipeline.model_edges import building_wireframe
 from workers.pipeline.orient_sequence import SequenceOrientationOptions, orient_sequence, windows
+from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
 from workers.pipeline.sequence import Accuracy
 
@@ -64,7 +67,7 @@ def test_doctests_and_windows() -> None:
 
 @pytest.mark.parametrize("window, overlap", [(120, 30), (16, 8)])
 def test_drive_is_oriented_below_a_pixel(drive, window: int, overlap: int) -> None:
-    # one block of all frames, and three overlapping blocks (frames take the pose of the block
+    # one block of all frames, and two overlapping blocks (frames take the pose of the block
     # where they lie furthest from the ends)
     res, images, prior, times, caster = drive
     before = _pairs(res, prior)
@@ -81,26 +84,77 @@ def test_drive_is_oriented_below_a_pixel(drive, window: int, overlap: int) -> No
     assert doc["frames"] == N and doc["frames_oriented"] == N and len(doc["blocks"]) == len(so.blocks)
 
 
-def test_units_refine_from_the_sequence_orientation(drive) -> None:
+@pytest.fixture(scope="module")
+def oriented(drive):
     res, images, prior, times, caster = drive
-    so = orient_sequence(res.manifest.camera, caster, list(range(N)), ArraySource(images), prior, times, ACC)
+    so = orient_sequence(res.manifest.camera, caster, list(range(N)), ArraySource(images), prior, times, ACC,
+                         SequenceOrientationOptions(window_frames=16, overlap_frames=8))
+    return so
+
+
+def _cluster_frames(res) -> list[tuple[object, list[int]]]:
     cam, T = res.manifest.camera, res.truth.poses
+    out = []
     for b in res.buildings:
-        if b.id not in res.truth.cluster:
-            continue
-        seen = [i for i in range(N) if np.isfinite(reprojection_rms(cam, b, T[i], T[i]))]
-        if len(seen) < 2:
-            continue
-        part = so.for_frames(seen)
-        assert set(part.poses) == set(seen) and set(np.unique(part.tracks.frame)) <= set(seen)
-        assert part.tracks.lengths().min() >= 2
-        out = refine_building(cam, b, caster, seen, ArraySource(images), {i: prior[i] for i in seen}, ACC,
-                              CoregisterOptions(), times, part)
-        after = np.array([reprojection_rms(cam, b, out[i].pose, T[i]) for i in seen])
-        refined = np.array([out[i].status == "refined" for i in seen])
-        assert refined.mean() >= 0.9
-        assert np.all(after[refined] < 1.0)
+        if b.id in res.truth.cluster:
+            seen = [i for i in range(N) if np.isfinite(reprojection_rms(cam, b, T[i], T[i]))]
+            if len(seen) >= 4:
+                out.append((b, seen))
+    return out
+
+
+def test_units_take_the_sequence_poses_where_the_buildings_edges_confirm_them(drive, oriented) -> None:
+    res, images, prior, _, caster = drive
+    cam, T = res.manifest.camera, res.truth.poses
+    units = _cluster_frames(res)
+    assert len(units) >= 1
+    for b, seen in units:
+        part = oriented.for_frames(seen)
+        assert set(part.poses) == set(seen) and all(part.ties[i] > 0 for i in seen)
+        out, reason = refine_from_sequence(cam, building_wireframe(b), caster, seen, images, prior, part)
+        assert reason == ""
+        refined = [i for i in seen if out[i].status == "refined"]
+        assert len(refined) >= 0.9 * len(seen)
+        assert all(out[i].pose is part.poses[i] for i in refined)
+        assert all(reprojection_rms(cam, b, out[i].pose, T[i]) < 1.0 for i in refined)
         assert all(out[i].pose is prior[i] for i in seen if out[i].status == "prior")
+        assert all(out[i].matches > 0 and np.isfinite(out[i].rms_px) for i in refined)
+
+
+def test_units_reject_what_the_sequence_leaves_open_or_the_building_contradicts(drive, oriented) -> None:
+    res, images, prior, times, caster = drive
+    cam = res.manifest.camera
+    b, seen = _cluster_frames(res)[0]
+    part = oriented.for_frames(seen)
+    # the same poses with a hundred times their covariance: not determined, priors kept
+    inflated = {i: 1e4 * c for i, c in part.covariance.items()}
+    loose = UnitSequence(part.poses, inflated, part.ties, part.tie_rms_px)
+    out, reason = refine_from_sequence(cam, building_wireframe(b), caster, seen, images, prior, loose)
+    assert reason == "" and all(out[i].status == "prior" for i in seen)
+    # poses 1 m beside the truth, claimed to the centimetre: the building's edges reject them
+    # everywhere, and refine_building orients the building from its priors instead
+    off = {i: Pose(p.R_world_from_cam, p.center + np.array([1.0, 1.0, 0.0])) for i, p in part.poses.items()}
+    wrong = UnitSequence(off, part.covariance, part.ties, part.tie_rms_px)
+    out, reason = refine_from_sequence(cam, building_wireframe(b), caster, seen, images, prior, wrong)
+    assert reason and all(out[i].status == "prior" for i in seen)
+    got = refine_building(cam, b, caster, seen, ArraySource(images), {i: prior[i] for i in seen}, ACC,
+                          CoregisterOptions(), times, wrong)
+    assert not any(got[i].pose is off[i] for i in seen)
+
+
+def test_each_frame_keeps_the_ties_of_the_window_that_oriented_it(oriented) -> None:
+    tr = oriented.tracks
+    assert tr.n_tracks > 50 and tr.lengths().min() >= 2
+    # overlapping windows track the same points again: no frame may hold the same point twice
+    for f in np.unique(tr.frame):
+        uv = np.round(tr.uv[tr.frame == f], 2)
+        assert len(np.unique(uv, axis=0)) == len(uv), f
+    assert set(oriented.ties) == set(oriented.covariance) and all(v > 0 for v in oriented.ties.values())
+
+
+def test_window_options_are_checked() -> None:
+    with pytest.raises(ValueError, match="overlap"):
+        SequenceOrientationOptions(window_frames=10, overlap_frames=10)
 
 
 def test_frames_without_the_model_keep_their_priors(drive) -> None:
@@ -112,3 +166,23 @@ def test_frames_without_the_model_keep_their_priors(drive) -> None:
     assert not any(b["accepted"] for b in so.blocks)
     assert so.oriented == [] and all(so.poses[i] is prior[i] for i in range(N))
     assert so.tracks.n_tracks == 0
+
+
+def test_the_bundle_fits_the_model_edges_without_ties(drive) -> None:
+    """The edge observations of `bundle_adjust` alone (no tie points), on the drive's frames from
+    priors with a common error: the common error goes, the edges end on their image edges."""
+    from workers.pipeline.bundle import bundle_adjust
+    from workers.pipeline.coregister_sequence import frame_noise_covariance
+    from workers.pipeline.model_edges import mesh_wireframe
+    from workers.pipeline.tracks import Tracks
+
+    res, images, prior, _, caster = drive
+    frames = list(range(N))
+    white = np.linalg.inv(frame_noise_covariance(0.3, 0.3))
+    common = np.diag([np.radians(2.0) ** -2] * 3 + [1.0] * 3)
+    out = bundle_adjust(res.manifest.camera, frames, images, prior, prior, dict.fromkeys(frames, white),
+                        common, Tracks.empty(), mesh_wireframe(caster.mesh), caster)
+    before, after = _pairs(res, prior), _pairs(res, out.poses)
+    assert out.converged and len(out.edge_support) > N // 2
+    assert np.mean(list(out.edge_support.values())) > 0.7
+    assert np.median(after) < 0.3 * np.median(before)

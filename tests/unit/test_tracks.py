@@ -9,9 +9,9 @@ import pytest
 
 from tests.unit.orientation_scenes import CAMERA, look_at, perturb
 from workers.pipeline.camera import Camera
-from workers.pipeline.pose import Pose
+from workers.pipeline.orientation_quality import tie_errors
 from workers.pipeline.raycast import RayCaster
-from workers.pipeline.tracks import Tracks, plane_affine, texture_strength, track_sequence
+from workers.pipeline.tracks import TrackOptions, plane_affine, texture_strength, track_sequence
 
 
 @pytest.fixture(scope="module")
@@ -23,27 +23,6 @@ def drive():
     res = synthesize(procedural_block(6, seed=1), opts)
     images = {i: res.frames.load(i) for i in range(16)}
     return res, images, RayCaster(res.mesh)
-
-
-def _errors(tracks: Tracks, camera: Camera, truth: list[Pose], caster: RayCaster) -> np.ndarray:
-    """Pixel distance of every later observation of each track to its true correspondence."""
-    first: dict[int, int] = {}
-    for k, t in enumerate(tracks.track):
-        first.setdefault(int(t), k)
-    out = []
-    for k, t in enumerate(tracks.track):
-        k0 = first[int(t)]
-        if k0 == k:
-            continue
-        a, b = tracks.frame[k0], tracks.frame[k]
-        d = camera.bearing(tracks.uv[k0][None]) @ truth[a].R_world_from_cam.T
-        hit = caster.cast(truth[a].center[None], d)
-        if not hit.hit[0]:
-            continue
-        X = truth[a].center + hit.t[0] * d[0]
-        uv, _ = truth[b].project(camera, X[None])
-        out.append(float(np.linalg.norm(uv[0] - tracks.uv[k])))
-    return np.array(out)
 
 
 def test_texture_strength_is_high_at_corners_low_on_edges_and_flat() -> None:
@@ -69,7 +48,7 @@ def test_tracks_from_the_true_poses_are_a_tenth_of_a_pixel_accurate(drive) -> No
     tr = track_sequence(res.manifest.camera, list(range(16)), images, dict(enumerate(truth)), caster)
     assert tr.n_tracks > 100 and np.median(tr.lengths()) >= 3
     assert tr.lengths().min() >= 2
-    e = _errors(tr, res.manifest.camera, truth, caster)
+    e = tie_errors(tr, res.manifest.camera, truth, caster)
     assert len(e) > 300
     # a few per cent drift along the epipolar line onto the next window of a regular grid (the
     # bundle adjustment drops them against their point and its plane)
@@ -87,7 +66,7 @@ def test_tracks_from_poses_with_a_common_error_stay_accurate(drive) -> None:
     wrong = {i: perturb(T, np.array([0.5, -0.3, 0.2]) + rng.normal(0, 0.1, 3),
                         np.full(3, 0.5) + rng.normal(0, 0.1, 3)) for i, T in enumerate(truth)}
     tr = track_sequence(res.manifest.camera, list(range(16)), images, wrong, caster)
-    e = _errors(tr, res.manifest.camera, truth, caster)
+    e = tie_errors(tr, res.manifest.camera, truth, caster)
     assert len(e) > 300
     assert np.median(e) < 0.2 and np.mean(e > 1.0) < 0.02
 
@@ -102,3 +81,11 @@ def test_frames_without_texture_give_no_tracks(drive) -> None:
         tr = track_sequence(res.manifest.camera, list(range(4)), imgs, dict(enumerate(res.truth.poses)),
                             caster)
         assert tr.n_tracks == 0 or len(tr.track) < 10
+
+
+def test_no_border_still_detects(drive) -> None:
+    # a border of 0 px must not clear the whole detection map (a slice [-0:] is everything)
+    res, images, caster = drive
+    tr = track_sequence(res.manifest.camera, [0, 1], images, dict(enumerate(res.truth.poses)), caster,
+                        TrackOptions(border_px=0))
+    assert tr.n_tracks > 20

@@ -8,11 +8,10 @@ Out: `{frame: RefinedPose}` with status `"refined"` or `"prior"`.
 Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
 
 0b. when the sequence orientation ran (`orient_sequence`: tracks and a bundle adjustment of the
-   whole sequence in blocks, drives), the building's frames start from its poses, and one bundle
-   adjustment with the sequence's tracks, the building's own edges and the sequence poses as
-   priors (their covariances) lets the block shift to fit this building's model
-   (`coregister_block.refine_from_sequence`); when the building's edges reject that, the steps
-   below run from the priors.
+   whole sequence in blocks against every building near the cameras, drives), the building's
+   frames take its poses where the building's own edges confirm them and their covariance,
+   projected onto the building, is small enough (`coregister_block.refine_from_sequence`); when
+   the building's edges confirm them nowhere, the steps below run from the priors.
 
 0. when the priors come from an accepted sequence calibration (`calibrate`; options from
    `calibrated_options`), the common error is already removed: a probe of frames decides whether
@@ -177,7 +176,8 @@ class CoregisterOptions:
     joint: JointOptions = field(default_factory=JointOptions)
     # close-range drives: the building's frames oriented as one block (feature tracks and a
     # bundle adjustment with the model: `coregister_block`) from the calibrated priors or from
-    # the joint correction; when the block is rejected, the frames go on one by one
+    # the joint correction, or taken from the sequence orientation when it ran (step 0b); when
+    # the block is rejected, the frames go on one by one. Off: neither
     block_orientation: bool = True
     block: BlockOptions = field(default_factory=BlockOptions)
     # per-frame deviation of the correction from its neighbours' (white noise, vibration)
@@ -285,8 +285,8 @@ def refine_building(
         return {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
     images = {i: frame_source.load(i) for i in frames}
     if sequence is not None and options.block_orientation:
-        got, _, reason = refine_from_sequence(camera, wf, raycaster, frames, images, prior, sequence,
-                                              options.block, options.fit, options.edges, options.features)
+        got, reason = refine_from_sequence(camera, wf, raycaster, frames, images, prior, sequence,
+                                           options.block, options.fit, options.edges, options.features)
         if not reason:
             return got
     infos = {i: prior_information(prior[i], accuracy, options) for i in frames}

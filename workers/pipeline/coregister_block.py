@@ -24,8 +24,9 @@ otherwise every frame keeps its prior. Around each frame, the frames within `anc
 see model edges must support the refined poses (`anchoring`: mean edge support ≥
 `min_mean_support`, above the null support of samples moved off their edges by
 `min_support_gain`); a frame with no such frames around it relies on the ties and its covariance.
-Then a frame is `"refined"` when it is observed (at least `min_ties` tie points, or
-`fit.min_edge_inliers` edge samples) with residuals below `fit.max_rms_px`, and the predicted
+Then a frame is `"refined"` when it is observed (at least `min_ties` tie points, or at least
+`fit.min_edges` matched model edges with an edge support of `fit.min_support`) with residuals
+below `fit.max_rms_px`, and the predicted
 uncertainty of the building's vertices in it (the frame's covariance from the adjustment) is at
 most `max_sigma_px`; else it keeps its prior with status `"prior"`.
 
@@ -42,6 +43,7 @@ import numpy as np
 
 from workers.pipeline.bundle import BundleOptions, BundleResult, bundle_adjust
 from workers.pipeline.camera import Camera
+from workers.pipeline.coregister_edges import edge_support, frame_edges
 from workers.pipeline.coregister_frame import FrameFitOptions, project_jacobian
 from workers.pipeline.coregister_geometry import pose_delta
 from workers.pipeline.coregister_sequence import frame_noise_covariance
@@ -77,15 +79,10 @@ class BlockOptions:
     # floors of the common error's prior σ (see the module docstring)
     common_sigma_floor_m: float = 1.0
     common_sigma_floor_deg: float = 2.0
-    # track again from the adjusted poses when the ties fit worse than their σ (the a-posteriori
-    # σ0 of unit weight above this)
-    retrack_sigma0: float = 1.0
-    # after the sequence orientation: σ of a common correction of a building's block, for city
-    # models whose buildings may sit off each other (georeferenced one by one), metres, degrees;
-    # 0: none (the building's edges refine each frame within its sequence covariance). Its
-    # uncertainty enters every frame's: a building that shows no edge to fix it keeps its priors
-    building_sigma_m: float = 0.0
-    building_sigma_deg: float = 0.0
+    # track again from the adjusted poses when the ties fit clearly worse than their σ (σ0 of
+    # unit weight above this): tracked from poses too far off, the warps were wrong (σ0 0.9 on a
+    # drive calibrated 4° off, 0.3–0.5 otherwise)
+    retrack_sigma0: float = 0.8
     # the block found the model around a frame (`anchoring`): mean edge support of the frames
     # within this many frames that see model edges, and its gain over their null support
     anchor_frames: int = 10
@@ -94,8 +91,9 @@ class BlockOptions:
     # largest plausible common correction of the block
     max_correction_m: float = 9.0
     max_correction_deg: float = 8.0
-    # a frame is refined with at least this many inlier tie points (or the frame fit's edge
-    # inliers) and a predicted uncertainty of the building's vertices of at most this (px)
+    # a frame is refined with at least this many inlier tie points (or the frame fit's matched
+    # edges and edge support) and a predicted uncertainty of the building's vertices of at most
+    # this (px)
     min_ties: int = 8
     max_sigma_px: float = 1.5
 
@@ -106,13 +104,15 @@ class UnitSequence:
 
     Attributes:
         poses: `{frame: Pose}` refined by the sequence orientation (the frames it oriented).
-        covariance: `{frame: (6, 6)}` of `(ω_cam [rad], dC_world [m])` of those poses.
-        tracks: the sequence's tracks restricted to the unit's frames (track points as adjusted).
+        covariance: `{frame: (6, 6)}` of `(ω_cam [rad], dC_world [m])` of those poses (each
+            frame's marginal covariance from its block).
+        ties: `{frame: inlier tie observations}` and `tie_rms_px` `{frame: their RMS}` there.
     """
 
     poses: dict[int, Pose]
     covariance: dict[int, np.ndarray]
-    tracks: Tracks
+    ties: dict[int, int] = field(default_factory=dict)
+    tie_rms_px: dict[int, float] = field(default_factory=dict)
 
 
 def sigma_px(camera: Camera, pose: Pose, X: np.ndarray, cov: np.ndarray) -> float:
@@ -199,7 +199,7 @@ def refine_block(
     reason = block_reason(frames, prior, res, options)
     if reason:
         return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, reason
-    anchor = anchoring(frames, res, options)
+    anchor = anchoring(frames, res.edge_support, res.null_support, options)
     eligible = {i for i, a in anchor.items() if a is not False}
     if not any(anchor.values()):
         return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, \
@@ -220,44 +220,51 @@ def refine_from_sequence(
     fit_options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
-) -> tuple[dict[int, RefinedPose], BundleResult | None, str]:
-    """The building's own refinement after the sequence orientation (`orient_sequence`): the
-    bundle adjustment of the unit's frames with the sequence's tracks and the BUILDING's edges,
-    each frame's sequence pose a prior with its covariance (and, with `building_sigma_*` > 0, one
-    common correction of the block: the building's model may sit a little off the others). A
-    frame the sequence did not orient has its `prior` with the per-frame noise σ. Accepted as
-    `refine_block`, except that a building showing no model edge at all keeps the sequence's
-    orientation (the block found the model there).
+) -> tuple[dict[int, RefinedPose], str]:
+    """The building's frames after the sequence orientation (`orient_sequence`): each takes its
+    sequence pose, checked against the BUILDING's own edges (`anchoring` of their edge support at
+    those poses: where they contradict the pose, the frame keeps its prior) and accepted when the
+    pose's marginal covariance from the sequence, projected onto the building's vertices, is at
+    most `max_sigma_px` (`"refined"`); else `"prior"`. The sequence adjustment already used every
+    building's edges and the tie points: adjusting again with them would count them twice (and
+    independent priors from correlated marginal covariances would count the block's common
+    uncertainty once per frame).
 
     Returns:
-        (`{frame: RefinedPose}`, the adjustment or None, why the block was rejected or "").
+        (`{frame: RefinedPose}`, "" or why the building's edges reject the sequence's poses
+        everywhere: the caller then orients the building on its own).
     """
     frames = list(frames)
-    white = np.linalg.inv(frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m))
-    start: dict[int, Pose] = {}
-    info: dict[int, np.ndarray] = {}
+    oriented = [i for i in frames if i in sequence.covariance and np.all(np.isfinite(sequence.covariance[i]))]
+    margin = fit_options.edge_radius_min_px + fit_options.roi_margin_px
+    edges = frame_edges(camera, building_wf, raycaster, oriented, images, sequence.poses, margin, fit_options,
+                        edge_options, feature_options)
+    support: dict[int, float] = {}
+    null: dict[int, float] = {}
+    matched: dict[int, int] = {}
+    rms: dict[int, float] = {}
+    for i, ed in edges.items():
+        got = edge_support(camera, building_wf, raycaster, sequence.poses[i], ed.feats, edge_options,
+                           fit_options, options.bundle.null_shift_px)
+        if got is not None:
+            support[i], null[i], off, matched[i] = got
+            rms[i] = float(np.sqrt(np.mean(off**2))) if len(off) else float("nan")
+    anchor = anchoring(frames, support, null, options)
+    if support and not any(anchor.values()):
+        keep = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
+        return keep, "the building's edges confirm the sequence orientation nowhere"
+    out = {}
     for i in frames:
-        cov = sequence.covariance.get(i)
-        if cov is not None and np.all(np.isfinite(cov)):
-            start[i] = sequence.poses[i]
-            info[i] = np.linalg.inv(cov + np.diag([1e-12] * 3 + [1e-8] * 3))
+        pose = sequence.poses.get(i)
+        ties = sequence.ties.get(i, 0)
+        n = ties + matched.get(i, 0)
+        r = _combined_rms(ties, sequence.tie_rms_px.get(i, float("nan")), rms.get(i, float("nan")))
+        if pose is None or i not in oriented or anchor.get(i) is False or \
+                sigma_px(camera, pose, building_wf.vertices, sequence.covariance[i]) > options.max_sigma_px:
+            out[i] = RefinedPose(i, prior[i], "prior", r, n)
         else:
-            start[i], info[i] = prior[i], white
-    common = None
-    if options.building_sigma_m > 0 and options.building_sigma_deg > 0:
-        sd = [np.radians(options.building_sigma_deg)] * 3 + [options.building_sigma_m] * 3
-        common = np.diag(np.asarray(sd) ** -2)
-    res = bundle_adjust(camera, frames, images, start, start, info, common, sequence.tracks, building_wf,
-                        raycaster, options.bundle, fit_options, edge_options, feature_options)
-    reason = block_reason(frames, start, res, options) if res.edge_support else ""
-    if reason:
-        return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, reason
-    # frames where the building's own edges around them do not support the poses keep their priors
-    eligible = {i for i, a in anchoring(frames, res, options).items() if a is not False}
-    oriented = set(sequence.covariance)
-    out = accept_frames(camera, building_wf.vertices, frames, prior, res, options, fit_options, oriented,
-                        eligible)
-    return out, res, ""
+            out[i] = RefinedPose(i, pose, "refined", r, n)
+    return out, ""
 
 
 def accept_frames(
@@ -309,15 +316,7 @@ def _floored(info: np.ndarray, options: BlockOptions) -> np.ndarray:
 
 def _rms(res: BundleResult, i: int) -> float:
     """RMS (px) of frame i's inlier tie residuals and edge offsets together."""
-    parts, n = 0.0, 0
-    if res.ties[i] and np.isfinite(res.tie_rms_px[i]):
-        parts += res.tie_rms_px[i] ** 2 * res.ties[i] * 2
-        n += 2 * res.ties[i]
-    e = res.edge_rms_px.get(i, float("nan"))
-    if np.isfinite(e):
-        parts += e**2 * 10
-        n += 10
-    return float(np.sqrt(parts / n)) if n else float("nan")
+    return _combined_rms(res.ties[i], res.tie_rms_px[i], res.edge_rms_px.get(i, float("nan")))
 
 
 def block_reason(frames: Sequence[int], prior: Mapping[int, Pose], res: BundleResult,
@@ -335,26 +334,42 @@ def block_reason(frames: Sequence[int], prior: Mapping[int, Pose], res: BundleRe
     return ""
 
 
-def anchoring(frames: Sequence[int], res: BundleResult, options: BlockOptions) -> dict[int, bool | None]:
+def anchoring(frames: Sequence[int], support: Mapping[int, float], null: Mapping[int, float],
+              options: BlockOptions) -> dict[int, bool | None]:
     """Whether the block found the model around each frame: among the frames within
-    `anchor_frames` of it (in `frames` order) that see model edges, the mean edge support
-    reaches `min_mean_support` and exceeds their mean null support (samples moved off the edges)
-    by `min_support_gain`. None when no frame around it sees model edges (a long blank facade:
-    the ties carry the orientation from further away, and its covariance says how well).
+    `anchor_frames` of it (frame indices: frames of another pass of a loop are not its
+    neighbours) that see model edges (`support`, `null`: edge support and null support per
+    frame), the mean edge support reaches `min_mean_support` and exceeds their mean null support
+    (samples moved off the edges) by `min_support_gain`. None when no frame around it sees model
+    edges (a long blank facade: the ties carry the orientation from further away, and its
+    covariance says how well).
 
     A 120-frame block of a drive down a street of tall blocks sees model edges in a third of its
     frames; one test over the whole block would reject the part that found the model with the part
     that had nothing to find."""
-    sup = np.array([res.edge_support.get(f, np.nan) for f in frames])
-    gain = sup - np.array([res.null_support.get(f, np.nan) for f in frames])
+    idx = np.asarray(frames, dtype=np.int64)
+    sup = np.array([support.get(f, np.nan) for f in frames])
+    gain = sup - np.array([null.get(f, np.nan) for f in frames])
     out: dict[int, bool | None] = {}
     K = options.anchor_frames
-    for k, f in enumerate(frames):
-        s = sup[max(0, k - K):k + K + 1]
-        g = gain[max(0, k - K):k + K + 1]
-        m = np.isfinite(s)
-        if not m.any():
+    for f in frames:
+        near = (np.abs(idx - f) <= K) & np.isfinite(sup)
+        if not near.any():
             out[f] = None
             continue
-        out[f] = bool(np.mean(s[m]) >= options.min_mean_support and np.mean(g[m]) >= options.min_support_gain)
+        out[f] = bool(np.mean(sup[near]) >= options.min_mean_support and
+                      np.mean(gain[near]) >= options.min_support_gain)
     return out
+
+
+def _combined_rms(ties: int, tie_rms: float, edge_rms: float) -> float:
+    """RMS (px) of a frame's inlier tie residuals (`ties` of RMS `tie_rms`) and edge offsets
+    (RMS `edge_rms`, weighted as ten observations)."""
+    parts, n = 0.0, 0
+    if ties and np.isfinite(tie_rms):
+        parts += tie_rms**2 * ties * 2
+        n += 2 * ties
+    if np.isfinite(edge_rms):
+        parts += edge_rms**2 * 10
+        n += 10
+    return float(np.sqrt(parts / n)) if n else float("nan")

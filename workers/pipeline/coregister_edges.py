@@ -16,7 +16,8 @@ bundle adjustment (`bundle`).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -25,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from workers.pipeline.camera import Camera
 from workers.pipeline.coregister_geometry import pose_delta, project_jacobian
-from workers.pipeline.features import ImageFeatures
+from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
@@ -34,9 +35,11 @@ if TYPE_CHECKING:  # the options live with the per-frame fit, which imports this
     from workers.pipeline.coregister_frame import FrameFitOptions
 
 __all__ = [
+    "FrameEdges",
     "edge_search",
     "edge_support",
     "frame_box",
+    "frame_edges",
     "image_normals",
     "match_corners",
     "matched_edges",
@@ -229,3 +232,34 @@ def matched_edges(edge: np.ndarray, near: np.ndarray, n_edges: int) -> int:
     seen = np.bincount(edge, minlength=n_edges)
     hit = np.bincount(edge[near], minlength=n_edges)
     return int(np.sum((seen > 0) & (hit >= 0.5 * seen)))
+
+
+@dataclass(eq=False)
+class FrameEdges:
+    """What a frame's edge observations need: its features around the wireframe and the visible
+    samples (recomputed as the pose moves)."""
+
+    feats: ImageFeatures
+    vis: VisibleWireframe
+
+
+def frame_edges(camera: Camera, wireframe: Wireframe, raycaster: RayCaster, frames: Sequence[int],
+                images: Mapping[int, np.ndarray], poses: Mapping[int, Pose], margin: float,
+                options: FrameFitOptions, edge_options: EdgeOptions, feature_options: FeatureOptions,
+                ) -> dict[int, FrameEdges]:
+    """Image gradients in a box `margin` px around the projected wireframe, and the visible
+    samples, of every frame that sees at least `options.min_samples` of them."""
+    out = {}
+    for f in frames:
+        vis = visible_samples(wireframe, camera, poses[f], raycaster, edge_options, options.max_samples)
+        if len(vis.points) < options.min_samples:
+            continue
+        roi = frame_box(camera, poses[f], vis, margin)
+        if roi is None:
+            continue
+        try:
+            feats = extract_features(images[f], feature_options, roi, points=False)
+        except FeatureError:
+            continue
+        out[f] = FrameEdges(feats, vis)
+    return out

@@ -41,6 +41,7 @@ from workers.pipeline.coregister_edges import (
 )
 from workers.pipeline.coregister_geometry import (
     apply_delta,
+    bounded_step,
     pose_delta,
     project_jacobian,
     so3_exp,
@@ -232,9 +233,7 @@ def fit_frame(
             delta = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             break
-        # bound a single step (linearisation): 3 degrees, 2 metres
-        delta[:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(delta[:3]), 1e-12))
-        delta[3:] *= min(1.0, 2.0 / max(np.linalg.norm(delta[3:]), 1e-12))
+        delta = bounded_step(delta, 3.0, 2.0)  # a single step: 3 degrees, 2 metres (linearisation)
         pose = apply_delta(pose, delta)
         inl = w_e > 0
         res = np.concatenate([off[inl], np.linalg.norm(rc[wc > 0], axis=1)]) if len(rc) else off[inl]

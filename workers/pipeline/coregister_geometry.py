@@ -46,6 +46,28 @@ def apply_delta(reference: Pose, delta: np.ndarray) -> Pose:
     return Pose(reference.R_world_from_cam @ so3_exp(d[:3]), reference.center + d[3:])
 
 
+def step_scale(d: np.ndarray, max_deg: float, max_m: float) -> float:
+    """The factor (≤ 1) that keeps a correction `(6,)` within `max_deg` of rotation and `max_m` of
+    translation (a Gauss-Newton step kept within its linearisation).
+
+    >>> step_scale(np.array([0.0, 0.0, 0.0, 4.0, 0.0, 0.0]), 2.0, 1.0)
+    0.25
+    """
+    d = np.asarray(d, dtype=np.float64)
+    r = float(np.linalg.norm(d[:3]))
+    t = float(np.linalg.norm(d[3:]))
+    return min(1.0, np.radians(max_deg) / max(r, 1e-12), max_m / max(t, 1e-12))
+
+
+def bounded_step(d: np.ndarray, max_deg: float, max_m: float) -> np.ndarray:
+    """A correction `(6,)` with its rotation shortened to `max_deg` and its translation to `max_m`,
+    each part on its own."""
+    d = np.asarray(d, dtype=np.float64).copy()
+    d[:3] *= min(1.0, np.radians(max_deg) / max(float(np.linalg.norm(d[:3])), 1e-12))
+    d[3:] *= min(1.0, max_m / max(float(np.linalg.norm(d[3:])), 1e-12))
+    return d
+
+
 def _distortion_jacobian(camera: Camera, ab: np.ndarray) -> np.ndarray:
     """`∂ distort / ∂(a, b)` `(N, 2, 2)` of OpenCV's k1, k2, k3, p1, p2 model at normalised `ab` `(N, 2)`."""
     a, b = ab[:, 0], ab[:, 1]

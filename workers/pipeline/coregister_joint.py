@@ -46,7 +46,7 @@ from workers.pipeline.coregister_edges import (
     visible_samples,
 )
 from workers.pipeline.coregister_frame import FrameFitOptions
-from workers.pipeline.coregister_geometry import apply_delta, pose_delta
+from workers.pipeline.coregister_geometry import apply_delta, bounded_step, pose_delta
 from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
 from workers.pipeline.pose import Pose
@@ -359,12 +359,12 @@ def _fine(
             dd = np.linalg.solve(S, b)
         except np.linalg.LinAlgError:
             break
-        dd = _bounded(dd)
+        dd = bounded_step(dd, 3.0, 2.0)
         delta = delta + dd
         big = 0.0
         for fr in data:
             B, c = parts[fr.index]
-            dx = _bounded(B @ (c + F @ dd))
+            dx = bounded_step(B @ (c + F @ dd), 3.0, 2.0)
             x[fr.index] = x[fr.index] + dx
             big = max(big, float(np.linalg.norm(dx[3:])))
         small = np.linalg.norm(dd[:3]) < 5e-5 and np.linalg.norm(dd[3:]) < 5e-3 and big < 5e-3
@@ -386,11 +386,3 @@ def _fine(
         cov = np.full((6, 6), np.nan)
     mean = float(np.mean(list(support.values()))) if support else 0.0
     return JointFit(delta=delta, covariance=cov, support=support, mean_support=mean, frame_delta=x)
-
-
-def _bounded(d: np.ndarray) -> np.ndarray:
-    """A Gauss-Newton step `(6,)` bounded to 3° and 2 m (linearisation)."""
-    d = d.copy()
-    d[:3] *= min(1.0, np.radians(3.0) / max(np.linalg.norm(d[:3]), 1e-12))
-    d[3:] *= min(1.0, 2.0 / max(np.linalg.norm(d[3:]), 1e-12))
-    return d

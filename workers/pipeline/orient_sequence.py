@@ -75,6 +75,11 @@ class SequenceOrientationOptions:
     overlap_frames: int = 30
     max_gap_s: float = 1.0
 
+    def __post_init__(self) -> None:
+        if self.window_frames < 2 or not 0 <= self.overlap_frames < self.window_frames:
+            raise ValueError(f"windows of {self.window_frames} frames overlapping by {self.overlap_frames}: "
+                             "need at least 2 frames and an overlap smaller than the window")
+
 
 @dataclass(frozen=True, eq=False)
 class SequenceOrientation:
@@ -84,15 +89,20 @@ class SequenceOrientation:
         poses: `{frame: Pose}` for every frame: refined, or the prior where no block oriented it.
         covariance: `{frame: (6, 6)}` of the refined poses (frames a block oriented).
         blocks: per window `{"frames": [first, last], "accepted": bool, "reason": str,
-            "mean_edge_support": float, "null_support": float, "sigma0": float, "tracks": int,
-            "tie_observations": int}`.
-        tracks: the tracks of the accepted windows (track points as adjusted), ids unique.
+            "frames_anchored": int, "frames_without_edges_around": int, "mean_edge_support":
+            float | None, "null_support": float | None, "sigma0": float, "tracks": int,
+            "tie_observations": int}` (`coregister_block.anchoring`).
+        tracks: the tie observations of each frame from the window its pose came from (track
+            points as adjusted, ids unique; the overlapping windows tracked the same points).
+        ties, tie_rms_px: inlier tie observations of each oriented frame and their RMS (px).
     """
 
     poses: dict[int, Pose]
     covariance: dict[int, np.ndarray]
     blocks: list[dict]
     tracks: Tracks
+    ties: dict[int, int] = field(default_factory=dict)
+    tie_rms_px: dict[int, float] = field(default_factory=dict)
 
     @property
     def oriented(self) -> list[int]:
@@ -101,37 +111,40 @@ class SequenceOrientation:
 
     def for_frames(self, frames: Sequence[int]) -> UnitSequence:
         """The part a building unit over `frames` needs (see `UnitSequence`)."""
-        fs = [int(f) for f in frames]
-        keep = np.isin(self.tracks.frame, fs)
-        sub = _subset(self.tracks, keep)
+        fs = [int(f) for f in frames if int(f) in self.covariance]
         return UnitSequence(
-            poses={f: self.poses[f] for f in fs if f in self.covariance},
-            covariance={f: self.covariance[f] for f in fs if f in self.covariance},
-            tracks=sub,
+            poses={f: self.poses[f] for f in fs},
+            covariance={f: self.covariance[f] for f in fs},
+            ties={f: self.ties.get(f, 0) for f in fs},
+            tie_rms_px={f: self.tie_rms_px.get(f, float("nan")) for f in fs},
         )
 
     def to_dict(self) -> dict:
-        """The report.json `orientation` block: frames oriented, and the blocks."""
+        """The report.json `sequence_orientation` block: frames, frames oriented, the blocks."""
         return {"frames": len(self.poses), "frames_oriented": len(self.covariance), "blocks": self.blocks}
 
 
 def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list[tuple[int, int]]:
     """Windows `(start, stop)` (positions into `times`, stop exclusive) of consecutive frames:
-    runs split where the time step exceeds `max_gap_s`, each run into windows of
-    `window_frames` overlapping by `overlap_frames` (the last window is taken back so that it is
-    full when the run allows).
+    runs split where the time step exceeds `max_gap_s` (runs of a single frame give no window),
+    each run into windows of `window_frames` overlapping by `overlap_frames` (the last window is
+    taken back so that it is full when the run allows).
 
     >>> windows([0.0, 0.1, 0.2, 0.3, 5.0, 5.1], SequenceOrientationOptions(window_frames=3, overlap_frames=1))
     [(0, 3), (1, 4), (4, 6)]
+    >>> windows([0.0, 5.0, 5.1], SequenceOrientationOptions(window_frames=3, overlap_frames=1))
+    [(1, 3)]
     """
     t = np.asarray(times, dtype=np.float64)
     if len(t) == 0:
         return []
     cuts = [0, *(np.flatnonzero(np.diff(t) > options.max_gap_s) + 1).tolist(), len(t)]
-    W = max(int(options.window_frames), 2)
-    step = max(W - int(options.overlap_frames), 1)
+    W = int(options.window_frames)
+    step = W - int(options.overlap_frames)
     out: list[tuple[int, int]] = []
     for a, b in itertools.pairwise(cuts):
+        if b - a < 2:
+            continue
         if b - a <= W:
             out.append((a, b))
             continue
@@ -170,12 +183,15 @@ def orient_sequence(
     poses = {f: prior[f] for f in frames}
     covariance: dict[int, np.ndarray] = {}
     blocks: list[dict] = []
-    parts: list[Tracks] = []
+    parts: dict[int, Tracks] = {}
+    owner: dict[int, int] = {}
+    ties: dict[int, int] = {}
+    tie_rms: dict[int, float] = {}
     scene_wf = None
     with contextlib.suppress(WireframeError):
         scene_wf = mesh_wireframe(raycaster.mesh, options.coregister.edges)
     if scene_wf is None or len(frames) < 2:
-        return SequenceOrientation(poses, covariance, blocks, _empty_tracks())
+        return SequenceOrientation(poses, covariance, blocks, Tracks.empty())
     # position of each frame in the window that owns it: distance to the window's ends
     best: dict[int, int] = {}
     spans = windows([times[f] for f in frames], options)
@@ -189,7 +205,7 @@ def orient_sequence(
         res, tracks = adjust_block(camera, scene_wf, raycaster, block, images, prior, prior, info,
                                    options.block, co.fit, co.edges, co.features)
         reason = block_reason(block, prior, res, options.block)
-        anchor = anchoring(block, res, options.block) if not reason else {}
+        anchor = anchoring(block, res.edge_support, res.null_support, options.block) if not reason else {}
         if not reason and not any(anchor.values()):
             reason = "the block found the model nowhere (edge support)"
         sup = [res.edge_support[f] for f in block if f in res.edge_support]
@@ -213,56 +229,14 @@ def orient_sequence(
             depth = min(k, len(block) - 1 - k)
             if f in taken and depth >= best.get(f, -1):
                 best[f] = depth
+                owner[f] = k_win
                 poses[f] = res.poses[f]
                 covariance[f] = res.covariance[f]
-        parts.append(_with_points(tracks, res.points))
+                ties[f], tie_rms[f] = res.ties[f], res.tie_rms_px[f]
+        parts[k_win] = tracks.with_points(res.points)
     if progress is not None:
         progress(len(spans), len(spans))
-    return SequenceOrientation(poses, covariance, blocks, _concat(parts))
-
-
-def _empty_tracks() -> Tracks:
-    z3 = np.zeros((0, 3))
-    return Tracks(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), z3, z3, np.zeros(0, int))
-
-
-def _with_points(tracks: Tracks, points: np.ndarray) -> Tracks:
-    """`tracks` with their points replaced by the adjusted `points` `(T, 3)` (the model planes
-    stay)."""
-    return Tracks(tracks.track, tracks.frame, tracks.uv, np.asarray(points), tracks.normal, tracks.polygon,
-                  tracks.offset)
-
-
-def _concat(parts: list[Tracks]) -> Tracks:
-    """One `Tracks` of several, track ids made unique."""
-    if not parts:
-        return _empty_tracks()
-    offs = np.cumsum([0] + [p.n_tracks for p in parts[:-1]])
-    return Tracks(
-        track=np.concatenate([p.track + o for p, o in zip(parts, offs, strict=True)]),
-        frame=np.concatenate([p.frame for p in parts]),
-        uv=np.concatenate([p.uv for p in parts]),
-        point=np.concatenate([p.point for p in parts]),
-        normal=np.concatenate([p.normal for p in parts]),
-        polygon=np.concatenate([p.polygon for p in parts]),
-        offset=np.concatenate([np.asarray(p.offset) for p in parts]),
-    )
-
-
-def _subset(tracks: Tracks, keep: np.ndarray) -> Tracks:
-    """The observations `keep` `(M,)` of `tracks`; tracks left with fewer than 2 are dropped and
-    the rest renumbered."""
-    t = tracks.track[keep]
-    length = np.bincount(t, minlength=tracks.n_tracks)
-    alive = length >= 2
-    m = alive[t]
-    new_id = np.cumsum(alive) - 1
-    return Tracks(
-        track=new_id[t[m]],
-        frame=tracks.frame[keep][m],
-        uv=tracks.uv[keep][m],
-        point=tracks.point[alive],
-        normal=tracks.normal[alive],
-        polygon=tracks.polygon[alive],
-        offset=np.asarray(tracks.offset)[alive],
-    )
+    # each frame's tie observations from the window its pose came from (overlapping windows track
+    # the same points again)
+    kept = [t.subset(np.array([owner.get(int(f)) == w for f in t.frame], bool)) for w, t in parts.items()]
+    return SequenceOrientation(poses, covariance, blocks, Tracks.concat(kept), ties, tie_rms)

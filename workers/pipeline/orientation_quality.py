@@ -7,7 +7,9 @@ image positions of model corners (projected with the true pose). Out: shares in 
 - completeness / correctness of feature extraction: share of true corner positions with an
   extracted point within a tolerance / share of extracted points near a true corner position;
 - completeness / correctness of matching: share of model corners correctly matched / share of
-  matches whose image point lies within the tolerance of the matched corner's true position.
+  matches whose image point lies within the tolerance of the matched corner's true position;
+- tie points (`tracks`): the distance of every later observation of a track to its true
+  correspondence.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import numpy as np
 from workers.pipeline.camera import Camera
 from workers.pipeline.citymodel import Building
 from workers.pipeline.pose import Pose
+from workers.pipeline.raycast import RayCaster
+from workers.pipeline.tracks import Tracks
 
 
 def edge_points(building: Building, spacing_m: float = 0.5) -> np.ndarray:
@@ -96,3 +100,23 @@ def match_quality(
     good = np.linalg.norm(uv - t[idx], axis=1) <= tolerance_px
     completeness = float(len(np.unique(idx[good])) / len(t)) if len(t) else float("nan")
     return completeness, float(np.mean(good))
+
+
+def tie_errors(tracks: Tracks, camera: Camera, truth: Sequence[Pose], caster: RayCaster) -> np.ndarray:
+    """Pixel distance `(K,)` of every later observation of each track to its true correspondence:
+    the ray of its first observation from the true pose onto the model (`caster`), projected
+    with the true pose (`truth[frame]`) of the later frame. Observations whose first ray meets
+    nothing are left out."""
+    first: dict[int, int] = {}
+    out = []
+    for k, t in enumerate(tracks.track):
+        k0 = first.setdefault(int(t), k)
+        if k0 == k:
+            continue
+        a, b = int(tracks.frame[k0]), int(tracks.frame[k])
+        d = camera.bearing(tracks.uv[k0][None]) @ truth[a].R_world_from_cam.T
+        hit = caster.cast(truth[a].center[None], d)
+        if hit.hit[0]:
+            uv, _ = truth[b].project(camera, truth[a].center + hit.t[0] * d)
+            out.append(float(np.linalg.norm(uv[0] - tracks.uv[k])))
+    return np.asarray(out)

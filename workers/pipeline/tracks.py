@@ -1,9 +1,9 @@
 """Feature tracks through a frame sequence, on the model's surfaces (tie points for the bundle).
 
 In: a `Camera`, frames in recording order with their images `(H, W)` float32 (physical values),
-a pose per frame (the calibrated GNSS/INS priors: a few pixels off), a `RayCaster` over the
-building model. Out: `Tracks`: every track's image observations `(frame, u, v)` and the model
-plane its point lies on (the polygon its first view's ray meets).
+a pose per frame (the calibrated GNSS/INS priors: tens of pixels off frame by frame), a
+`RayCaster` over the building model. Out: `Tracks`: every track's image observations
+`(frame, u, v)` and the model plane its point lies on (of the polygon its first view's ray meets).
 
 Why: consecutive TIR frames of a drive overlap by 90 %; a facade point seen in ten frames ties
 their poses together far more precisely than GNSS does (0.2 m of white noise is 15 px at 11 m),
@@ -90,7 +90,6 @@ class Tracks:
         point: `(T, 3)` world point of each track: its first view's ray on the model, or where an
             adjustment put it.
         normal: `(T, 3)` unit normal of the model plane the point lies on (world).
-        polygon: `(T,)` int model polygon index (`SceneMesh.polygon_ids`).
         offset: `(T,)` the model plane: `normal · X = offset` (metres); None: through `point`.
     """
 
@@ -99,12 +98,46 @@ class Tracks:
     uv: np.ndarray
     point: np.ndarray
     normal: np.ndarray
-    polygon: np.ndarray
     offset: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.offset is None:
             object.__setattr__(self, "offset", np.sum(self.normal * self.point, axis=1))
+
+    @classmethod
+    def empty(cls) -> Tracks:
+        """No tracks."""
+        z3 = np.zeros((0, 3))
+        return cls(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), z3, z3, np.zeros(0))
+
+    def subset(self, keep: np.ndarray) -> Tracks:
+        """The observations `keep` `(M,)` bool; tracks left with fewer than 2 observations (which
+        tie nothing) are dropped and the rest renumbered."""
+        t = self.track[keep]
+        alive = np.bincount(t, minlength=self.n_tracks) >= 2
+        m = alive[t]
+        new_id = np.cumsum(alive) - 1
+        return Tracks(new_id[t[m]], self.frame[keep][m], self.uv[keep][m], self.point[alive],
+                      self.normal[alive], np.asarray(self.offset)[alive])
+
+    def with_points(self, points: np.ndarray) -> Tracks:
+        """The same tracks with their points at `points` `(T, 3)` (the model planes stay)."""
+        return Tracks(self.track, self.frame, self.uv, np.asarray(points), self.normal, self.offset)
+
+    @staticmethod
+    def concat(parts: Sequence[Tracks]) -> Tracks:
+        """One `Tracks` of several, track ids made unique."""
+        if not parts:
+            return Tracks.empty()
+        offs = np.cumsum([0] + [p.n_tracks for p in parts[:-1]])
+        return Tracks(
+            track=np.concatenate([p.track + o for p, o in zip(parts, offs, strict=True)]),
+            frame=np.concatenate([p.frame for p in parts]),
+            uv=np.concatenate([p.uv for p in parts]),
+            point=np.concatenate([p.point for p in parts]),
+            normal=np.concatenate([p.normal for p in parts]),
+            offset=np.concatenate([np.asarray(p.offset) for p in parts]),
+        )
 
     @property
     def n_tracks(self) -> int:
@@ -269,8 +302,11 @@ def _detect(strength: np.ndarray, occupied: np.ndarray, options: TrackOptions, n
     r = options.nms_radius_px
     peak = strength >= cv2.dilate(strength, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
     b = options.border_px
-    peak[:b] = peak[-b:] = False
-    peak[:, :b] = peak[:, -b:] = False
+    H, W = strength.shape
+    peak[:b] = False
+    peak[H - b:] = False
+    peak[:, :b] = False
+    peak[:, W - b:] = False
     v, u = np.nonzero(peak & (strength > floor))
     if len(v) == 0:
         return np.zeros((0, 2))
@@ -334,7 +370,9 @@ def track_sequence(
         camera: interior orientation.
         frames: frame indices in recording order (consecutive entries are tracked against each other).
         images: `(H, W)` float32 physical values per frame.
-        poses: camera pose per frame (world = model CRS), a few pixels off at most.
+        poses: camera pose per frame (world = model CRS): the relative motion of consecutive
+            frames predicted to within the coarse tracker's reach (about `lk_window_px` ×
+            2^`lk_levels` / 2 px), the model planes found by the rays.
         raycaster: the model the points lie on.
         options: parameters.
     """
@@ -346,7 +384,6 @@ def track_sequence(
     obs_uv: list[np.ndarray] = []
     pts: list[np.ndarray] = []
     nrms: list[np.ndarray] = []
-    polys: list[np.ndarray] = []
     # one gain for the high-pass copies (translation-invariant tracking input)
     gain = 0.0
     if frames:
@@ -413,13 +450,12 @@ def track_sequence(
         cand = _detect(texture_strength(img, options.window_sigma_px), occupied, options,
                        options.max_tracks - len(act.ids))
         if len(cand):
-            ok, X, poly, nrm = _on_surface(camera, raycaster, poses[f], cand, options)
-            cand, X, poly, nrm = cand[ok], X[ok], poly[ok], nrm[ok]
+            ok, X, _, nrm = _on_surface(camera, raycaster, poses[f], cand, options)
+            cand, X, nrm = cand[ok], X[ok], nrm[ok]
         if len(cand):
             ids = np.arange(len(pts), len(pts) + len(cand))
             pts.extend(X)
             nrms.extend(nrm)
-            polys.extend(poly)
             obs_t.append(ids)
             obs_f.append(np.full(len(ids), f))
             obs_uv.append(cand)
@@ -427,21 +463,7 @@ def track_sequence(
                           _templates(img, cand, options))
         prev8, prev = img8, f
     if not pts:
-        z3 = np.zeros((0, 3))
-        return Tracks(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), z3, z3, np.zeros(0, int))
-    track = np.concatenate(obs_t)
-    frame = np.concatenate(obs_f)
-    uv = np.concatenate(obs_uv)
-    # single-view tracks tie nothing: drop them and renumber
-    length = np.bincount(track, minlength=len(pts))
-    keep_t = length >= 2
-    new_id = np.cumsum(keep_t) - 1
-    m = keep_t[track]
-    return Tracks(
-        track=new_id[track[m]],
-        frame=frame[m],
-        uv=uv[m],
-        point=np.array(pts)[keep_t],
-        normal=np.array(nrms)[keep_t],
-        polygon=np.array(polys)[keep_t],
-    )
+        return Tracks.empty()
+    every = Tracks(np.concatenate(obs_t), np.concatenate(obs_f), np.concatenate(obs_uv), np.array(pts),
+                   np.array(nrms))
+    return every.subset(np.ones(len(every.track), bool))

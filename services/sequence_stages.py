@@ -25,6 +25,7 @@ from workers.pipeline.sequence import Accuracy, FrameSource, Mounting, SequenceM
 if TYPE_CHECKING:
     from workers.pipeline.calibrate import SequenceCalibration
     from workers.pipeline.orient_sequence import SequenceOrientation
+    from workers.pipeline.raycast import RayCaster
 
 __all__ = ["calibrate_priors", "calibration_documents", "orient_priors", "orients"]
 
@@ -34,6 +35,7 @@ def calibrate_priors(
     manifest: SequenceManifest,
     priors: Sequence[Pose],
     frame_source: FrameSource,
+    caster: RayCaster | None = None,
 ) -> tuple[SequenceCalibration, list[Pose], Accuracy | None]:
     """The calibrate stage: `calibrate_sequence` over every frame of the sequence against a ray
     caster over `buildings` (those near the cameras).
@@ -43,6 +45,7 @@ def calibrate_priors(
         manifest: the sequence (camera, frame indices and times in seconds, accuracy).
         priors: manifest-only prior camera pose per frame, in manifest order.
         frame_source: the package's frames (`load(index)`, physical values).
+        caster: a ray caster over `buildings` (built here when None; the orient stage shares it).
 
     Returns:
         (the calibration, the priors the units start from (`apply_calibration`: unchanged unless
@@ -64,7 +67,7 @@ def calibrate_priors(
         cal = SequenceCalibration(theta=np.zeros(10), reason="no buildings near the cameras")
     else:
         try:
-            caster = RayCaster(build_scene_mesh(buildings))
+            caster = caster if caster is not None else RayCaster(build_scene_mesh(buildings))
             cal = calibrate_sequence(
                 manifest.camera,
                 caster,
@@ -107,9 +110,11 @@ def orient_priors(
     frame_source: FrameSource,
     accuracy: Accuracy | None,
     progress: Callable[[int, int], None] | None = None,
+    caster: RayCaster | None = None,
 ) -> tuple[SequenceOrientation | None, dict[str, Any]]:
     """The orient stage: `orient_sequence` over every frame of the sequence, from the
-    (calibrated) `priors` with their `accuracy`, against a ray caster over `buildings`.
+    (calibrated) `priors` with their `accuracy`, against a ray caster over `buildings` (`caster`,
+    built here when None).
 
     Returns (the orientation, or None when it could not run, and the report.json
     `sequence_orientation` block). An orientation that raises is reported, not fatal: the units
@@ -123,7 +128,7 @@ def orient_priors(
     frames = [f.index for f in manifest.frames]
     times = {f.index: float(f.time) for f in manifest.frames}
     try:
-        caster = RayCaster(build_scene_mesh(buildings))
+        caster = caster if caster is not None else RayCaster(build_scene_mesh(buildings))
         prior = dict(zip(frames, priors, strict=True))
         so = orient_sequence(manifest.camera, caster, frames, frame_source, prior, times, accuracy,
                              progress=progress)
