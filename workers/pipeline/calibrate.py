@@ -50,7 +50,7 @@ from workers.pipeline.calibrate_model import N_PARAMS, design, frame_motion
 from workers.pipeline.camera import Camera
 from workers.pipeline.coregister_edges import (
     edge_support,
-    frame_box,
+    frame_edges,
     image_normals,
     normal_equations,
     visible_samples,
@@ -58,7 +58,7 @@ from workers.pipeline.coregister_edges import (
 from workers.pipeline.coregister_frame import FrameFitOptions
 from workers.pipeline.coregister_geometry import apply_delta
 from workers.pipeline.coregister_joint import JointOptions, _gradient, _score, joint_fit
-from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
+from workers.pipeline.features import FeatureOptions, ImageFeatures
 from workers.pipeline.model_edges import (
     EdgeOptions,
     VisibleWireframe,
@@ -305,21 +305,11 @@ def calibrate_sequence(
                       options.features)
     if not start.accepted:
         return replace(zero, reason=f"no common correction: {start.reason}", frames=tuple(pick))
-    data = []
-    for i in pick:
-        vis = visible_samples(wireframe, camera, apply_delta(priors[i], start.delta), raycaster,
-                              options.edges, fo.max_samples)
-        if len(vis.points) < fo.min_samples:
-            continue
-        roi = frame_box(camera, apply_delta(priors[i], start.delta), vis,
-                        options.radius_start_px + fo.roi_margin_px)
-        if roi is None:
-            continue
-        try:
-            feats = extract_features(images[i], options.features, roi, points=False)
-        except FeatureError:
-            continue
-        data.append(_Frame(i, priors[i], A[i], feats))
+    corrected = {i: apply_delta(priors[i], start.delta) for i in pick}
+    margin = options.radius_start_px + fo.roi_margin_px
+    found = frame_edges(camera, wireframe, raycaster, pick, images, corrected, margin, fo, options.edges,
+                        options.features)
+    data = [_Frame(i, priors[i], A[i], found[i].feats) for i in pick if i in found]
     theta0 = np.zeros(N_PARAMS)
     theta0[:6] = start.delta
     cal = _adjust(camera, wireframe, raycaster, data, theta0, P, options)

@@ -40,14 +40,14 @@ from workers.pipeline.camera import Camera
 from workers.pipeline.coregister_coarse import shift_pose
 from workers.pipeline.coregister_edges import (
     edge_support,
-    frame_box,
+    frame_edges,
     image_normals,
     normal_equations,
     visible_samples,
 )
 from workers.pipeline.coregister_frame import FrameFitOptions
 from workers.pipeline.coregister_geometry import apply_delta, bounded_step, pose_delta
-from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
+from workers.pipeline.features import FeatureOptions, ImageFeatures
 from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
 from workers.pipeline.pose import Pose
 from workers.pipeline.raycast import RayCaster
@@ -159,19 +159,9 @@ def joint_fit(
     pick = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, min(len(frames), options.max_frames))
                                          .round().astype(int))] if frames else []
     margin = options.coarse_radius_px + options.radius_start_px + fit_options.roi_margin_px
-    data: list[_Frame] = []
-    for i in pick:
-        vis = visible_samples(wireframe, camera, prior[i], raycaster, edge_options, fit_options.max_samples)
-        if len(vis.points) < fit_options.min_samples:
-            continue
-        roi = frame_box(camera, prior[i], vis, margin)
-        if roi is None:
-            continue
-        try:
-            feats = extract_features(images[i], feature_options, roi, points=False)
-        except FeatureError:
-            continue
-        data.append(_Frame(i, prior[i], feats))
+    found = frame_edges(camera, wireframe, raycaster, pick, images, prior, margin, fit_options, edge_options,
+                        feature_options)
+    data = [_Frame(i, prior[i], found[i].feats) for i in pick if i in found]
     if len(data) < options.min_supported_frames:
         return JointFit(delta=np.zeros(6), reason="too few frames see model edges")
     starts = [np.zeros(6)]
