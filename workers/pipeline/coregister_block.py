@@ -275,14 +275,13 @@ def accept_frames(
     res: BundleResult,
     options: BlockOptions,
     fit_options: FrameFitOptions,
-    oriented: set[int] | frozenset[int] = frozenset(),
     eligible: set[int] | None = None,
 ) -> dict[int, RefinedPose]:
     """Per-frame acceptance of an adjusted block (module docstring): `"refined"` with the adjusted
     pose when the frame is `eligible` (None: all; where the block found the model, `anchoring`)
-    and observed (tie points or edges, or oriented by the sequence: `oriented`) with residuals
-    below `fit.max_rms_px`, and the predicted uncertainty of the points `X` `(N, 3)` (the
-    building's vertices) in it is at most `max_sigma_px`; else `"prior"`."""
+    and observed (tie points or edges) with residuals below `fit.max_rms_px`, and the predicted
+    uncertainty of the points `X` `(N, 3)` (the building's vertices) in it is at most
+    `max_sigma_px`; else `"prior"`."""
     out = {}
     fo = fit_options
     for i in frames:
@@ -293,7 +292,7 @@ def accept_frames(
         pose = res.poses[i]
         ties, edges = res.ties[i], res.matched_edges.get(i, 0)
         rms = _rms(res, i)
-        seen = i in oriented or ties >= options.min_ties or \
+        seen = ties >= options.min_ties or \
             (edges >= fo.min_edges and res.edge_support.get(i, 0.0) >= fo.min_support)
         ok_rms = not np.isfinite(rms) or rms <= fo.max_rms_px
         if seen and ok_rms and sigma_px(camera, pose, X, res.covariance[i]) <= options.max_sigma_px:
