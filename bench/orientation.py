@@ -37,16 +37,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from workers.pipeline.calibrate import apply_calibration, calibrate_sequence, calibrated_accuracy
-from workers.pipeline.coregister import CoregisterOptions, calibrated_options, refine_building
-from workers.pipeline.coregister_frame import pose_delta
-from workers.pipeline.georef import prior_poses
-from workers.pipeline.model_edges import building_wireframe, visible_wireframe
-from workers.pipeline.orient_sequence import SEQUENCE_PLATFORMS, orient_sequence
-from workers.pipeline.orientation_quality import edge_points, tie_errors
-from workers.pipeline.orientation_quality import reprojection_rms as quality_rms
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.geometry.georef import prior_poses
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.building import CoregisterOptions, calibrated_options, refine_building
+from workers.pipeline.orientation.calibration import (
+    apply_calibration,
+    calibrate_sequence,
+    calibrated_accuracy,
+)
+from workers.pipeline.orientation.frame_fit import pose_delta
+from workers.pipeline.orientation.quality import edge_points, tie_errors
+from workers.pipeline.orientation.quality import reprojection_rms as quality_rms
+from workers.pipeline.orientation.sequence import SEQUENCE_PLATFORMS, orient_sequence
+from workers.pipeline.orientation.wireframe import building_wireframe, visible_wireframe
 from workers.pipeline.synth import ErrorOptions, SynthOptions, procedural_block, synthesize
 
 
@@ -67,7 +71,7 @@ def reprojection_rms(camera, pts: np.ndarray, pose: Pose, truth: Pose) -> float:
 
 def offset_pose(pose: Pose, d_m: float, d_deg: float) -> Pose:
     """True pose moved by `d_m` along world x, y and z and rotated by `d_deg` about each camera axis."""
-    from workers.pipeline.coregister_frame import so3_exp
+    from workers.pipeline.orientation.frame_fit import so3_exp
 
     R = pose.R_world_from_cam @ so3_exp(np.radians([d_deg, d_deg, d_deg]))
     return Pose(R, pose.center + d_m)
@@ -214,9 +218,9 @@ def summary(r: dict) -> dict:
 def feature_quality(res, imgs, options: CoregisterOptions, n: int = 10) -> dict:
     """Completeness/correctness of feature extraction and matching against true corner positions,
     at the true pose (extraction) and after refinement from the prior (matching), tolerance 2 px."""
-    from workers.pipeline.coregister import prior_information
-    from workers.pipeline.coregister_frame import fit_frame
-    from workers.pipeline.orientation_quality import match_quality, point_quality
+    from workers.pipeline.orientation.building import prior_information
+    from workers.pipeline.orientation.frame_fit import fit_frame
+    from workers.pipeline.orientation.quality import match_quality, point_quality
 
     cam = res.manifest.camera
     caster = RayCaster(res.mesh)

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from db.sequence_package import open_package, write_package
-from workers.pipeline.camera import Camera
-from workers.pipeline.georef import Trajectory, attitude_from_ned_from_body, prior_poses
-from workers.pipeline.sequence import FrameRecord, ImuSamples, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.georef import Trajectory, attitude_from_ned_from_body, prior_poses
+from workers.pipeline.geometry.manifest import FrameRecord, ImuSamples, Mounting, Radiometry, SequenceManifest
 
 N_FRAMES, W, H = 200, 640, 512
 

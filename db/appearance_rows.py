@@ -21,7 +21,7 @@ import numpy as np
 from psycopg.types.json import Jsonb
 from sqlalchemy import Connection, text
 
-from workers.pipeline.citymodel import (
+from workers.pipeline.geometry.citymodel import (
     Appearance,
     GeoreferencedTexture,
     ParameterizedTexture,

@@ -34,7 +34,7 @@ from db.citygml.writer import write_citygml
 from db.errors import CityDBError, NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
 from db.session import as_engine
-from workers.pipeline.citymodel import Appearance, Building, ParameterizedTexture, Polygon, Ring
+from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture, Polygon, Ring
 
 __all__ = ["ExportOptions", "ExportSummary", "export_citygml"]
 

@@ -21,7 +21,7 @@ from functools import lru_cache
 import numpy as np
 import shapely
 
-from workers.pipeline.citymodel import Building, Polygon
+from workers.pipeline.geometry.citymodel import Building, Polygon
 
 __all__ = [
     "EncodedPolygons",

@@ -21,7 +21,7 @@ import numpy as np
 from db.geomcodec import encode_envelope, encode_footprints, encode_polygons
 from db.ops import copy_field, pg_bool_array, pg_text_array
 from db.surface_checks import jsonable, surface_checks
-from workers.pipeline.citymodel import Appearance, Building, Polygon
+from workers.pipeline.geometry.citymodel import Appearance, Building, Polygon
 
 __all__ = ["BUILDING_TAIL", "SURFACE_TAIL", "BatchLines", "batch_lines"]
 

@@ -21,7 +21,7 @@ from typing import Any
 
 from db.citygml import reader as citygml_reader
 from db.citygml.names import CityGMLError
-from workers.pipeline.citymodel import Building
+from workers.pipeline.geometry.citymodel import Building
 
 __all__ = ["BatchStream"]
 

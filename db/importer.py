@@ -38,7 +38,6 @@ from sqlalchemy.exc import IntegrityError
 from db.appearance_images import store_appearance_images
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
-from db.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
 from db.errors import InputDataError, ModelExistsError
 from db.geomcodec import encode_envelope
 from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
@@ -52,7 +51,8 @@ from db.ops import (
     reserve_ids,
 )
 from db.session import as_engine
-from workers.pipeline.citymodel import Appearance, ModelHeader
+from workers.pipeline.geometry.citymodel import Appearance, ModelHeader
+from workers.pipeline.geometry.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
 
 __all__ = ["ImportOptions", "ImportSummary", "import_citygml", "model_srid"]
 

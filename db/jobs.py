@@ -21,8 +21,8 @@ from sqlalchemy.orm import Session
 
 from db.errors import CityDBError, NotFoundError
 from db.geomcodec import encode_linestring_z, encode_point_z
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import SequenceManifest
+from workers.pipeline.geometry.manifest import SequenceManifest
+from workers.pipeline.geometry.pose import Pose
 
 __all__ = [
     "FINAL_STATES",

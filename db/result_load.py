@@ -20,10 +20,10 @@ from sqlalchemy.orm import Session
 from db.appearance_rows import load_texture_params, surface_data_from_rows
 from db.errors import NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
-from workers.pipeline.citymodel import Appearance
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.citymodel import Appearance
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.results import Anomaly, BuildingResult, FramePose, SurfaceStats, TextureTile
-from workers.pipeline.sequence import Radiometry
 
 __all__ = ["load_building_result"]
 

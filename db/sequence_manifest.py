@@ -2,7 +2,7 @@
 
 In: the decoded JSON object of `sequence.json` and the package root folder (to read the optional
 `imu` CSV and `gcps` JSON it names, and to check that frame files exist).
-Out: a `workers.pipeline.sequence.SequenceManifest` (positions still in the manifest's `crs`).
+Out: a `workers.pipeline.geometry.manifest.SequenceManifest` (positions still in the manifest's `crs`).
 
 Every refusal raises `PackageError` (a `ValueError`) whose `.field` names the offending field
 (`frames[3].position[1]`, `mounting.camera_to_body`) or file (`frames/000003.png`,
@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from db.crs import UnknownCRSError, resolve_crs
-from workers.pipeline.camera import Camera
-from workers.pipeline.sequence import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.crs import UnknownCRSError, resolve_crs
+from workers.pipeline.geometry.manifest import (
     FORMAT,
     Accuracy,
     FrameRecord,

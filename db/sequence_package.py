@@ -41,7 +41,7 @@ from db.sequence_manifest import (
     safe_relative,
     write_imu_csv,
 )
-from workers.pipeline.sequence import Radiometry, SequenceManifest
+from workers.pipeline.geometry.manifest import Radiometry, SequenceManifest
 
 __all__ = [
     "DEFAULT_MAX_BYTES",

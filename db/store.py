@@ -32,10 +32,10 @@ from db.errors import InputDataError, NotFoundError
 from db.geomcodec import encode_point_z, encode_polygon_z
 from db.jobs import create_job
 from db.ops import copy_rows, reserve_ids
-from workers.pipeline.citymodel import Appearance, ParameterizedTexture
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.citymodel import Appearance, ParameterizedTexture
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.results import BuildingResult, TextureTile
-from workers.pipeline.sequence import Radiometry
 
 __all__ = ["StoredResult", "create_job", "encode_tile_png", "store_building_result", "to_kelvin"]
 

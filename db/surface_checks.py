@@ -16,7 +16,7 @@ import numpy as np
 
 from db.citygml.checks import CheckOptions
 from db.geomcodec import EncodedPolygons
-from workers.pipeline.citymodel import Building, Polygon
+from workers.pipeline.geometry.citymodel import Building, Polygon
 
 __all__ = ["fast_checks", "full_checks", "jsonable", "surface_checks"]
 

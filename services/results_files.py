@@ -18,10 +18,10 @@ import cv2
 import numpy as np
 
 from db.citygml.writer import write_citygml
-from workers.pipeline.citymodel import Appearance, Building, ParameterizedTexture
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture
+from workers.pipeline.geometry.manifest import Radiometry, SequenceManifest
+from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.results import BuildingResult, TextureTile
-from workers.pipeline.sequence import Radiometry, SequenceManifest
 
 ORIENTATION_FORMAT = "citytherm-orientation/1"
 REPORT_FORMAT = "citytherm-report/1"

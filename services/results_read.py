@@ -18,9 +18,9 @@ import cv2
 import numpy as np
 
 from db.citygml.reader import read_model
-from workers.pipeline.citymodel import Building, ParameterizedTexture, Polygon
-from workers.pipeline.sequence import Radiometry
-from workers.pipeline.texel import TexelGrid, TexelOptions, texel_grid
+from workers.pipeline.geometry.citymodel import Building, ParameterizedTexture, Polygon
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
 
 
 class ResultsReadError(ValueError):

@@ -37,17 +37,17 @@ from db.citygml.reader import iter_buildings, read_header
 from db.sequence_package import SequencePackage, open_package
 from services.results_files import write_results_folder, write_tile
 from services.sequence_stages import calibrate_priors, calibration_documents, orient_priors, orients
-from workers.pipeline.citymodel import Building, ModelHeader
-from workers.pipeline.georef import prior_poses
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.geometry.citymodel import Building, ModelHeader
+from workers.pipeline.geometry.georef import prior_poses
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
 from workers.pipeline.results import BuildingResult, TextureTile
-from workers.pipeline.sequence import Radiometry
-from workers.pipeline.texel import TexelOptions
+from workers.pipeline.texture.texel import TexelOptions
 from workers.pipeline.units import BuildingUnit, PlanOptions, UnitOptions, plan_units, run_building_unit
 
 if TYPE_CHECKING:  # the orientation modules are optional: imported where the stage runs
-    from workers.pipeline.calibrate import SequenceCalibration
+    from workers.pipeline.orientation.calibration import SequenceCalibration
 
 #: progress callback: (stage, done, total); called with done == 0 when a stage starts.
 Progress = Callable[[str, int, int], None]
@@ -59,8 +59,8 @@ class RunError(ValueError):
 
 
 def refine_available() -> bool:
-    """True when the orientation module (`workers.pipeline.coregister`) is installed."""
-    return importlib.util.find_spec("workers.pipeline.coregister") is not None
+    """True when the orientation module (`workers.pipeline.orientation.building`) is installed."""
+    return importlib.util.find_spec("workers.pipeline.orientation.building") is not None
 
 
 @dataclass(frozen=True)
@@ -269,7 +269,7 @@ def plan_job(
     if options.workers < 1:
         raise RunError(f"workers must be >= 1, got {options.workers}")
     if options.refine and not refine_available():
-        raise RunError("refine: the orientation module (workers.pipeline.coregister) is not installed")
+        raise RunError("refine: the orientation module (workers.pipeline.orientation.building) is not installed")
     TexelOptions(resolution_px_per_m=options.resolution_px_per_m)  # validates the resolution
 
     t0 = time.perf_counter()
@@ -321,7 +321,7 @@ def plan_job(
         unit_options = options.unit_options()
         if calibration is not None and calibration.accepted and unit_options.refine_options is None:
             # the common error is removed: the units skip their wide searches
-            from workers.pipeline.coregister import CoregisterOptions, calibrated_options
+            from workers.pipeline.orientation.building import CoregisterOptions, calibrated_options
 
             unit_options = replace(unit_options, refine_options=calibrated_options(CoregisterOptions()))
         units = plan_units(

@@ -18,14 +18,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from workers.pipeline.citymodel import Building
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import Accuracy, FrameSource, Mounting, SequenceManifest
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.manifest import Accuracy, FrameSource, Mounting, SequenceManifest
+from workers.pipeline.geometry.pose import Pose
 
 if TYPE_CHECKING:
-    from workers.pipeline.calibrate import SequenceCalibration
-    from workers.pipeline.orient_sequence import SequenceOrientation
-    from workers.pipeline.raycast import RayCaster
+    from workers.pipeline.geometry.raycast import RayCaster
+    from workers.pipeline.orientation.calibration import SequenceCalibration
+    from workers.pipeline.orientation.sequence import SequenceOrientation
 
 __all__ = ["calibrate_priors", "calibration_documents", "orient_priors", "orients"]
 
@@ -53,13 +53,13 @@ def calibrate_priors(
         accepted)). A calibration that raises is returned as rejected, its `reason` naming the
         error: one sequence the method cannot handle must not sink the job.
     """
-    from workers.pipeline.calibrate import (
+    from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+    from workers.pipeline.orientation.calibration import (
         SequenceCalibration,
         apply_calibration,
         calibrate_sequence,
         calibrated_accuracy,
     )
-    from workers.pipeline.raycast import RayCaster, build_scene_mesh
 
     frames = [f.index for f in manifest.frames]
     times = [float(f.time) for f in manifest.frames]
@@ -90,7 +90,7 @@ def calibration_documents(
     `calibration` (`{"run": false}` when the stage did not run; `seconds` its wall time)."""
     if calibration is None:
         return None, {"run": False}
-    from workers.pipeline.calibrate_mounting import calibration_report, mounting_document
+    from workers.pipeline.orientation.mounting import calibration_report, mounting_document
 
     return mounting_document(mounting, calibration), calibration_report(calibration, mounting, seconds)
 
@@ -98,7 +98,7 @@ def calibration_documents(
 def orients(platform: str) -> bool:
     """True when sequences of `platform` are oriented in blocks before the units (close range:
     `orient_sequence.SEQUENCE_PLATFORMS`)."""
-    from workers.pipeline.orient_sequence import SEQUENCE_PLATFORMS
+    from workers.pipeline.orientation.sequence import SEQUENCE_PLATFORMS
 
     return platform in SEQUENCE_PLATFORMS
 
@@ -120,8 +120,8 @@ def orient_priors(
     `sequence_orientation` block). An orientation that raises is reported, not fatal: the units
     then refine from the priors.
     """
-    from workers.pipeline.orient_sequence import orient_sequence
-    from workers.pipeline.raycast import RayCaster, build_scene_mesh
+    from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+    from workers.pipeline.orientation.sequence import orient_sequence
 
     if not buildings:
         return None, {"run": False, "reason": "no buildings near the cameras"}

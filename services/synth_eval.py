@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 
 from services.results_read import iter_surface_textures
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.synth import SynthResult
-from workers.pipeline.texel import TexelGrid, TexelOptions, texel_grid
-from workers.pipeline.texture_eval import summarize, surface_errors, truth_raster, visible_texels
+from workers.pipeline.texture.quality import summarize, surface_errors, truth_raster, visible_texels
+from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
 
 
 def below_ground(grid: TexelGrid, ground_z: float) -> np.ndarray:

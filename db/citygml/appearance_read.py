@@ -19,7 +19,7 @@ import numpy as np
 from lxml import etree
 
 from db.citygml.names import XLINK_HREF, CityGMLError, get_id, local, ref_id
-from workers.pipeline.citymodel import (
+from workers.pipeline.geometry.citymodel import (
     Appearance,
     GeoreferencedTexture,
     ParameterizedTexture,

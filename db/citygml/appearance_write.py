@@ -19,7 +19,7 @@ import numpy as np
 from lxml import etree
 
 from db.citygml.names import GML_NS, XLINK_HREF, app_ns, to_ncname
-from workers.pipeline.citymodel import (
+from workers.pipeline.geometry.citymodel import (
     Appearance,
     GeoreferencedTexture,
     ParameterizedTexture,

@@ -43,7 +43,7 @@ from db.citygml.names import (
     ref_id,
     to_ncname,
 )
-from workers.pipeline.citymodel import Building, Polygon, Ring, SurfaceData
+from workers.pipeline.geometry.citymodel import Building, Polygon, Ring, SurfaceData
 
 log = logging.getLogger(__name__)
 

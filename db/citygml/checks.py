@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from workers.pipeline.citymodel import Building, Polygon
-from workers.pipeline.geometry import fit_plane, open_ring, surface_axes, to_plane_2d, triangulate
+from workers.pipeline.geometry.citymodel import Building, Polygon
+from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes, to_plane_2d, triangulate
 
 __all__ = ["CheckOptions", "PolygonCheck", "check_building", "check_buildings", "check_polygon"]
 

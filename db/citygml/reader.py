@@ -41,7 +41,7 @@ from db.citygml.names import (
     local,
     namespace,
 )
-from workers.pipeline.citymodel import Appearance, Building, ModelHeader, SurfaceData
+from workers.pipeline.geometry.citymodel import Appearance, Building, ModelHeader, SurfaceData
 
 __all__ = ["CityGMLError", "iter_buildings", "open_model", "read_header", "read_model"]
 

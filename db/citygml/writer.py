@@ -46,7 +46,7 @@ from db.citygml.names import (
     gen_ns,
     to_ncname,
 )
-from workers.pipeline.citymodel import SURFACE_CLASSES, Appearance, Building, Polygon
+from workers.pipeline.geometry.citymodel import SURFACE_CLASSES, Appearance, Building, Polygon
 
 __all__ = ["NSMAP", "envelope_of", "write_citygml"]
 

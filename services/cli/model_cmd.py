@@ -26,7 +26,7 @@ def _crs_text(srs_name: str | None) -> str:
     if not srs_name:
         return "(none)"
     try:
-        from db.crs import horizontal_epsg, vertical_epsg
+        from workers.pipeline.geometry.crs import horizontal_epsg, vertical_epsg
 
         h, v = horizontal_epsg(srs_name), vertical_epsg(srs_name)
     except (ImportError, ValueError) as exc:

@@ -14,12 +14,12 @@ import db.importer as importer_mod
 from db.citygml.names import CityGMLError
 from db.citygml.reader import read_model
 from db.citygml.validate import validate_citygml2
-from db.crs import horizontal_epsg
 from db.errors import InputDataError, ModelExistsError
 from db.export import export_citygml
 from db.geomcodec import polygon_rings_from_wkb
 from db.importer import ImportOptions, import_citygml
 from tests.conftest import DATA
+from workers.pipeline.geometry.crs import horizontal_epsg
 
 pytestmark = pytest.mark.integration
 

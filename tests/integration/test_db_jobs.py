@@ -24,10 +24,10 @@ from db.jobs import (
 from db.store import store_building_result
 from tests.conftest import DATA
 from tests.integration.test_db_store_export import make_result
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import FrameRecord, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.manifest import FrameRecord, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.pose import Pose
 
 pytestmark = pytest.mark.integration
 

@@ -25,10 +25,10 @@ from db.importer import import_citygml
 from db.store import create_job, store_building_result
 from services.results_files import write_textured_gml, write_tile
 from tests.conftest import DATA
-from workers.pipeline.citymodel import Appearance, Building, ParameterizedTexture, TextureTarget
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture, TextureTarget
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.results import Anomaly, BuildingResult, FramePose, SurfaceStats, TextureTile
-from workers.pipeline.sequence import Radiometry
 
 pytestmark = pytest.mark.integration
 

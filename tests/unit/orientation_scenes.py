@@ -12,12 +12,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building, Polygon, Ring
-from workers.pipeline.orientation_quality import edge_points
-from workers.pipeline.orientation_quality import reprojection_rms as quality_rms
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building, Polygon, Ring
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.orientation.quality import edge_points
+from workers.pipeline.orientation.quality import reprojection_rms as quality_rms
 
 CAMERA = Camera(width=640, height=512, fx=780.0, fy=780.0, cx=319.5, cy=255.5, k1=-0.08, k2=0.02)
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from tests.unit.texture_scene import box_building, field
-from workers.pipeline.atlas import AtlasError, AtlasOptions, build_atlas, pack
-from workers.pipeline.sequence import Radiometry
-from workers.pipeline.texel import TexelOptions, texel_grid
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.texture.atlas import AtlasError, AtlasOptions, build_atlas, pack
+from workers.pipeline.texture.texel import TexelOptions, texel_grid
 
 
 def test_packing_never_overlaps_keeps_the_gutter_and_the_size_limit():

@@ -1,4 +1,4 @@
-"""Bundle adjustment of a block (`workers.pipeline.bundle`) on synthetic observations with known
+"""Bundle adjustment of a block (`workers.pipeline.orientation.bundle`) on synthetic observations with known
 ground truth: points on the planes of a box corner seen by a drive, no images (no edges)."""
 
 from __future__ import annotations
@@ -7,12 +7,12 @@ import doctest
 
 import numpy as np
 
-import workers.pipeline.bundle as bundle_module
+import workers.pipeline.orientation.bundle as bundle_module
 from tests.unit.orientation_scenes import CAMERA, drive_poses, perturb
-from workers.pipeline.bundle import BundleOptions, bundle_adjust, track_pairs
-from workers.pipeline.coregister_geometry import pose_delta
-from workers.pipeline.pose import Pose
-from workers.pipeline.tracks import Tracks
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import pose_delta
+from workers.pipeline.orientation.bundle import BundleOptions, bundle_adjust, track_pairs
+from workers.pipeline.orientation.tracks import Tracks
 
 # four planes: a facade y = 0 (facing -y), the side wall x = 20 of its building (facing +x), the
 # facade y = 4 of the set-back neighbour (facing -y) and the ground z = 0 in front of them. (The

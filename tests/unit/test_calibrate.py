@@ -1,5 +1,5 @@
-"""Sequence calibration (`workers.pipeline.calibrate`) on a synthetic drive, and its conversion to
-the manifest's mounting terms (`workers.pipeline.calibrate_mounting`)."""
+"""Sequence calibration (`workers.pipeline.orientation.calibration`) on a synthetic drive, and its conversion to
+the manifest's mounting terms (`workers.pipeline.orientation.mounting`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,13 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.pipeline.calibrate import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.georef import prior_poses
+from workers.pipeline.geometry.manifest import FrameRecord, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import pose_delta, so3_exp
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.calibration import (
     SequenceCalibration,
     apply_calibration,
     calibrate_sequence,
@@ -15,18 +21,12 @@ from workers.pipeline.calibrate import (
     design,
     frame_motion,
 )
-from workers.pipeline.calibrate_mounting import (
+from workers.pipeline.orientation.mounting import (
     calibrated_mounting,
     calibration_report,
     mounting_document,
     wrap_deg,
 )
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_geometry import pose_delta, so3_exp
-from workers.pipeline.georef import prior_poses
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.sequence import FrameRecord, Mounting, Radiometry, SequenceManifest
 from workers.pipeline.synth import ErrorOptions, SynthOptions, SynthResult, procedural_block, synthesize
 
 N_FRAMES = 40  # 30 frames leave too few frames seeing edges for the +5 m start (bench: 40)

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.pipeline.camera import Camera
+from workers.pipeline.geometry.camera import Camera
 
 SPEC_CAMERA = Camera(640, 512, 880.0, 880.0, 319.5, 255.5, k1=-0.12, k2=0.05)
 SPEC_K1_STRONG = Camera(640, 512, 880.0, 880.0, 319.5, 255.5, k1=-0.3)

@@ -7,7 +7,7 @@ import pytest
 
 from db.citygml.checks import CheckOptions, check_building, check_polygon
 from tests.conftest import DATA
-from workers.pipeline.citymodel import Building, Polygon, Ring
+from workers.pipeline.geometry.citymodel import Building, Polygon, Ring
 
 
 def _poly(

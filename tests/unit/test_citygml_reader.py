@@ -117,7 +117,7 @@ def test_reader_matches_xpath(name: str) -> None:
 
 
 def test_crs_names_resolve() -> None:
-    from db.crs import horizontal_epsg
+    from workers.pipeline.geometry.crs import horizontal_epsg
 
     epsg = {name: horizontal_epsg(exp["srs"]) for name, exp in SAMPLES.items()}
     assert epsg["nrw-tile-5659-citygml1-lod2.gml"] == 25832

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from db.citygml import read_model, validate_citygml2, write_citygml
-from workers.pipeline.citymodel import SURFACE_CLASSES, Building, Polygon, Ring
+from workers.pipeline.geometry.citymodel import SURFACE_CLASSES, Building, Polygon, Ring
 
 RNG_SEED = 20261121
 

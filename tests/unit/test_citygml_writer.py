@@ -11,7 +11,7 @@ from lxml import etree
 from db.citygml import read_model, validate_citygml2, write_citygml
 from tests.conftest import DATA
 from tests.unit.citygml_docs import boundary, building, polygon, square, write_doc
-from workers.pipeline.citymodel import Appearance, ParameterizedTexture, TextureTarget
+from workers.pipeline.geometry.citymodel import Appearance, ParameterizedTexture, TextureTarget
 
 SAMPLES = sorted(p.name for p in DATA.glob("*.gml"))
 APP = "http://www.opengis.net/citygml/appearance/2.0"
@@ -223,7 +223,7 @@ def test_feature_member_buildings(tmp_path: Path) -> None:
 
 
 def test_non_finite_numbers_stay_valid(tmp_path: Path) -> None:
-    from workers.pipeline.citymodel import Building, Polygon, Ring
+    from workers.pipeline.geometry.citymodel import Building, Polygon, Ring
 
     ring = Ring("R1", np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0]], float))
     b = Building(

@@ -14,12 +14,17 @@ from tests.unit.orientation_scenes import (
     perturb,
     reprojection_rms,
 )
-from workers.pipeline.coregister import CoregisterOptions, RefinedPose, prior_information, refine_building
-from workers.pipeline.coregister_frame import apply_delta, pose_delta, project_jacobian
-from workers.pipeline.orientation_quality import efficiency, match_quality, point_quality
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.sequence import Accuracy
+from workers.pipeline.geometry.manifest import Accuracy
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.building import (
+    CoregisterOptions,
+    RefinedPose,
+    prior_information,
+    refine_building,
+)
+from workers.pipeline.orientation.frame_fit import apply_delta, pose_delta, project_jacobian
+from workers.pipeline.orientation.quality import efficiency, match_quality, point_quality
 
 B1 = box_building("B1", 0, 0, 20, 12, 9, ridge=4)
 B2 = box_building("B2", 24, 2, 10, 10, 6)
@@ -118,7 +123,7 @@ def test_quality_measures_of_features_and_matches():
 
 @pytest.fixture(scope="module")
 def synth_flight():
-    from workers.pipeline.georef import prior_poses
+    from workers.pipeline.geometry.georef import prior_poses
     from workers.pipeline.synth import SynthOptions, procedural_block, synthesize
 
     opts = SynthOptions(platform="flight", n_frames=8, seed=3, buildings=3)
@@ -148,7 +153,7 @@ def test_synthetic_flight_with_default_errors_is_refined_below_a_pixel(synth_fli
 def test_synthetic_drive_is_never_refined_into_a_wrong_pose():
     # close-range drive with default errors: most frames see only vertical building corners, so
     # many frames keep their prior; whatever is marked refined must be right
-    from workers.pipeline.georef import prior_poses
+    from workers.pipeline.geometry.georef import prior_poses
     from workers.pipeline.synth import SynthOptions, procedural_block, synthesize
 
     opts = SynthOptions(platform="drive", n_frames=10, seed=2, buildings=2)
@@ -220,7 +225,7 @@ def test_synthetic_drive_with_default_errors_is_refined_with_tie_points(synth_dr
     # of consecutive frames transferred over the model inside the joint adjustment (without them:
     # median 6.8 px, 20 % below 2 px; with them 1.5 px, 65 %). What remains is mostly a common
     # tilt/height of a chain of frames that sees no horizontal model edge.
-    from workers.pipeline.georef import prior_poses
+    from workers.pipeline.geometry.georef import prior_poses
 
     res, frames = synth_drive[True]
     prior = dict(enumerate(prior_poses(res.manifest, None)))
@@ -236,8 +241,12 @@ def test_synthetic_drive_with_default_errors_is_refined_with_tie_points(synth_dr
 def _calibrated_pairs(res, frames, prior) -> tuple[list[tuple[float, float, str]], object]:
     """Sequence calibration (as `citytherm run` does), then the building units with the options
     for calibrated priors; pairs as `_drive_pairs` (before = the uncalibrated prior)."""
-    from workers.pipeline.calibrate import apply_calibration, calibrate_sequence, calibrated_accuracy
-    from workers.pipeline.coregister import CoregisterOptions, calibrated_options
+    from workers.pipeline.orientation.building import CoregisterOptions, calibrated_options
+    from workers.pipeline.orientation.calibration import (
+        apply_calibration,
+        calibrate_sequence,
+        calibrated_accuracy,
+    )
 
     cam = res.manifest.camera
     caster = RayCaster(res.mesh)
@@ -281,7 +290,7 @@ def test_synthetic_drive_default_errors_calibration_or_fallback(synth_drive):
     # 2.4 s of drive (one turn): the sequence calibration is not trusted here (mean edge support
     # below its bar: it is rejected and the priors are kept), and the units fall back to their
     # own joint searches; the result must stay as good as without the calibration stage
-    from workers.pipeline.georef import prior_poses
+    from workers.pipeline.geometry.georef import prior_poses
 
     res, frames = synth_drive[True]
     prior = dict(enumerate(prior_poses(res.manifest, None)))

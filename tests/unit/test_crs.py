@@ -8,7 +8,7 @@ from pathlib import Path
 import pyproj
 import pytest
 
-from db.crs import (
+from workers.pipeline.geometry.crs import (
     UnknownCRSError,
     horizontal_crs,
     horizontal_epsg,

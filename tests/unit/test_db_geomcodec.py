@@ -12,8 +12,8 @@ from db.geomcodec import (
     encode_polygons,
     polygon_rings_from_wkb,
 )
-from workers.pipeline.citymodel import Building, Polygon, Ring
-from workers.pipeline.geometry import fit_plane
+from workers.pipeline.geometry.citymodel import Building, Polygon, Ring
+from workers.pipeline.geometry.polygons import fit_plane
 
 
 def _rect(rng: np.random.Generator, k: int, closed: bool = True, hole: bool = False) -> Polygon:

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.pipeline.features import (
+from workers.pipeline.orientation.features import (
     FeatureError,
     FeatureOptions,
     extract_features,

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import quad
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.georef import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.georef import (
     R_WORLD_FROM_NED,
     GeorefError,
     Rx,
@@ -29,7 +29,7 @@ from workers.pipeline.georef import (
     prior_poses,
     world_trajectory,
 )
-from workers.pipeline.sequence import FrameRecord, ImuSamples, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.manifest import FrameRecord, ImuSamples, Mounting, Radiometry, SequenceManifest
 
 FORWARD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # spec's forward camera
 CAM = Camera(640, 512, 880.0, 880.0, 319.5, 255.5)
@@ -395,10 +395,10 @@ def test_prior_poses_with_time_delay_from_frames_and_other_mounting() -> None:
 def test_doctests() -> None:
     import doctest
 
-    import db.crs
-    import workers.pipeline.georef as georef
+    import workers.pipeline.geometry.crs
+    import workers.pipeline.geometry.georef as georef
 
-    for mod in (georef, db.crs):
+    for mod in (georef, workers.pipeline.geometry.crs):
         result = doctest.testmod(mod)
         assert result.attempted > 0 and result.failed == 0, mod.__name__
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from tests.unit.orientation_scenes import CAMERA, _poly, box_building, look_at
-from workers.pipeline.citymodel import Building
-from workers.pipeline.model_edges import (
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.orientation.wireframe import (
     GROUND,
     ROOF,
     WALL,
@@ -16,7 +17,6 @@ from workers.pipeline.model_edges import (
     mesh_wireframe,
     visible_wireframe,
 )
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
 
 
 def test_box_has_twelve_merged_edges_and_eight_corners():

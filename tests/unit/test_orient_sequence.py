@@ -1,4 +1,4 @@
-"""Sequence orientation (`workers.pipeline.orient_sequence`): a synthetic drive with the default
+"""Sequence orientation (`workers.pipeline.orientation.sequence`): a synthetic drive with the default
 error model, oriented in blocks from priors with a common and a per-frame error, against the true
 poses (reprojection of the cluster buildings' edges)."""
 
@@ -9,15 +9,15 @@ import doctest
 import numpy as np
 import pytest
 
-import workers.pipeline.orient_sequence as orient_module
+import workers.pipeline.orientation.sequence as orient_module
 from tests.unit.orientation_scenes import ArraySource, perturb, reprojection_rms
-from workers.pipeline.coregister import CoregisterOptions, refine_building
-from workers.pipeline.coregister_block import UnitSequence, refine_from_sequence
-from workers.pipeline.model_edges import building_wireframe
-from workers.pipeline.orient_sequence import SequenceOrientationOptions, orient_sequence, windows
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.sequence import Accuracy
+from workers.pipeline.geometry.manifest import Accuracy
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.block import UnitSequence, refine_from_sequence
+from workers.pipeline.orientation.building import CoregisterOptions, refine_building
+from workers.pipeline.orientation.sequence import SequenceOrientationOptions, orient_sequence, windows
+from workers.pipeline.orientation.wireframe import building_wireframe
 
 N = 24
 ACC = Accuracy(position_m=np.array([0.5, 0.5, 0.5]), attitude_deg=np.array([0.5, 0.5, 0.5]))
@@ -171,10 +171,10 @@ def test_frames_without_the_model_keep_their_priors(drive) -> None:
 def test_the_bundle_fits_the_model_edges_without_ties(drive) -> None:
     """The edge observations of `bundle_adjust` alone (no tie points), on the drive's frames from
     priors with a common error: the common error goes, the edges end on their image edges."""
-    from workers.pipeline.bundle import bundle_adjust
-    from workers.pipeline.coregister_sequence import frame_noise_covariance
-    from workers.pipeline.model_edges import mesh_wireframe
-    from workers.pipeline.tracks import Tracks
+    from workers.pipeline.orientation.bundle import bundle_adjust
+    from workers.pipeline.orientation.neighbours import frame_noise_covariance
+    from workers.pipeline.orientation.tracks import Tracks
+    from workers.pipeline.orientation.wireframe import mesh_wireframe
 
     res, images, prior, _, caster = drive
     frames = list(range(N))

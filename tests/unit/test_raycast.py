@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.pipeline.citymodel import Building, Polygon, Ring
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.geometry.citymodel import Building, Polygon, Ring
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
 
 X0, Y0, Z0 = 691000.0, 5334000.0, 500.0
 

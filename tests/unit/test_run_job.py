@@ -17,9 +17,9 @@ from services.cli import app
 from services.runner import RunError, RunOptions, run_job
 from tests.unit.texture_package import write_scene
 from tests.unit.texture_scene import box_building, field, look_at
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import ParameterizedTexture
-from workers.pipeline.sequence import Radiometry
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import ParameterizedTexture
+from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.units import ArrayFrameSource, plan_units, run_building_unit
 
 CAM = Camera(240, 192, 220.0, 220.0, 119.5, 95.5, k1=-0.05)
@@ -228,10 +228,10 @@ def test_refinement_is_reported_and_a_failing_refinement_keeps_the_priors(scene,
             raise RuntimeError("no edges")
         return {f: Refined(f, prior[f], "refined" if f % 2 == 0 else "prior") for f in frames}
 
-    fake = types.ModuleType("workers.pipeline.coregister")
-    fake.__spec__ = importlib.util.spec_from_loader("workers.pipeline.coregister", loader=None)
+    fake = types.ModuleType("workers.pipeline.orientation.building")
+    fake.__spec__ = importlib.util.spec_from_loader("workers.pipeline.orientation.building", loader=None)
     fake.refine_building = refine_building
-    monkeypatch.setitem(sys.modules, "workers.pipeline.coregister", fake)
+    monkeypatch.setitem(sys.modules, "workers.pipeline.orientation.building", fake)
     # no calibration: the stand-in must see the manifest's priors
     run_job(gml, pkg, tmp_path / "r", RunOptions(refine=True, calibrate=False, display=False))
     doc = json.loads((tmp_path / "r" / "orientation.json").read_text())
@@ -294,7 +294,7 @@ def test_refinement_calibrates_the_sequence_first_and_reports_the_mounting(tmp_p
     manifest-only ones."""
     from db.citygml.writer import write_citygml
     from db.sequence_package import open_package
-    from workers.pipeline.georef import prior_poses
+    from workers.pipeline.geometry.georef import prior_poses
     from workers.pipeline.synth import ErrorOptions, SynthOptions, procedural_block, synthesize
     from workers.pipeline.synth import write_synthetic_package as write_synth
 

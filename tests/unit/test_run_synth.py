@@ -81,7 +81,7 @@ def test_drive_with_gnss_ins_errors_is_oriented_and_textured_to_the_bars(tmp_pat
     from db.citygml.writer import write_citygml
     from services.synth_eval import orientation_accuracy
     from tests.unit.orientation_scenes import reprojection_rms
-    from workers.pipeline.pose import Pose
+    from workers.pipeline.geometry.pose import Pose
     from workers.pipeline.synth import procedural_block
 
     blds = procedural_block(6, seed=1)

@@ -22,8 +22,8 @@ from db.sequence_package import (
     open_package,
     write_package,
 )
-from workers.pipeline.camera import Camera
-from workers.pipeline.sequence import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.manifest import (
     Accuracy,
     FrameRecord,
     GroundControl,

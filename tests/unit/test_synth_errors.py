@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from workers.pipeline.georef import camera_pose, camera_poses, prior_poses
+from workers.pipeline.geometry.georef import camera_pose, camera_poses, prior_poses
 from workers.pipeline.synth import (
     ErrorOptions,
     PathTrajectory,

@@ -7,10 +7,10 @@ import pytest
 import shapely
 
 from db.citygml.reader import read_model
-from workers.pipeline.camera import Camera
-from workers.pipeline.geometry import triangulate
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.polygons import triangulate
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
 from workers.pipeline.synth import (
     SKY,
     Renderer,

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from workers.pipeline.geometry import fit_plane, open_ring, surface_axes
+from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes
 from workers.pipeline.synth import SynthError, ThermalOptions, ThermalScene, gable_house, procedural_block
 from workers.pipeline.synth.thermal import ROOF, WALL
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import shapely
 
-from workers.pipeline.georef import camera_pose
-from workers.pipeline.sequence import Mounting
+from workers.pipeline.geometry.georef import camera_pose
+from workers.pipeline.geometry.manifest import Mounting
 from workers.pipeline.synth import DriveOptions, FlightOptions, PathTrajectory, SynthError, procedural_block
 from workers.pipeline.synth.shapes import footprint
 from workers.pipeline.synth.trajectory import (
@@ -100,7 +100,7 @@ def test_cluster_choice(block):
 
 
 def test_procedural_houses_are_closed_and_outward(block):
-    from workers.pipeline.geometry import fit_plane, newell_normal
+    from workers.pipeline.geometry.polygons import fit_plane, newell_normal
 
     for b in block[:5]:
         lo, hi = b.bounds()

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from tests.unit.texture_scene import box_building
-from workers.pipeline.geometry import fit_plane
-from workers.pipeline.texel import TexelError, TexelOptions, texel_grid
+from workers.pipeline.geometry.polygons import fit_plane
+from workers.pipeline.texture.texel import TexelError, TexelOptions, texel_grid
 
 
 def test_wall_grid_size_centres_and_raster_convention():

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from tests.unit.texture_scene import box_building, field, look_at, render
-from workers.pipeline.camera import Camera
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
-from workers.pipeline.sequence import Radiometry
-from workers.pipeline.texalign import AlignOptions, align_partial
-from workers.pipeline.texture import FusionOptions, SurfaceTexture, local_resolution, sample_bilinear
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.texture.alignment import AlignOptions, align_partial
+from workers.pipeline.texture.fusion import FusionOptions, SurfaceTexture, local_resolution, sample_bilinear
 from workers.pipeline.units import ArrayFrameSource, UnitOptions, plan_units, texture_unit
 
 CAM = Camera(320, 256, 300.0, 300.0, 159.5, 127.5, k1=-0.05)

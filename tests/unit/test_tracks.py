@@ -1,4 +1,4 @@
-"""Feature tracks on the model's surfaces (`workers.pipeline.tracks`) on a synthetic drive with
+"""Feature tracks on the model's surfaces (`workers.pipeline.orientation.tracks`) on a synthetic drive with
 known true poses: every tracked position is compared with the true correspondence (the first
 view's ray onto the model, projected with the true pose of the later frame)."""
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from tests.unit.orientation_scenes import CAMERA, look_at, perturb
-from workers.pipeline.camera import Camera
-from workers.pipeline.orientation_quality import tie_errors
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.tracks import TrackOptions, plane_affine, texture_strength, track_sequence
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.quality import tie_errors
+from workers.pipeline.orientation.tracks import TrackOptions, plane_affine, texture_strength, track_sequence
 
 
 @pytest.fixture(scope="module")

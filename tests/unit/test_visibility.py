@@ -6,12 +6,17 @@ import numpy as np
 import pytest
 
 from tests.unit.texture_scene import box_building, field, look_at, render
-from workers.pipeline.camera import Camera
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
-from workers.pipeline.sequence import Radiometry
-from workers.pipeline.texel import TexelOptions, texel_grid
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.texture.texel import TexelOptions, texel_grid
+from workers.pipeline.texture.visibility import (
+    VisibilityOptions,
+    boxes_in_frustum,
+    buried_texels,
+    project_texels,
+)
 from workers.pipeline.units import ArrayFrameSource, PlanOptions, plan_units, texture_unit
-from workers.pipeline.visibility import VisibilityOptions, boxes_in_frustum, buried_texels, project_texels
 
 CAM = Camera(200, 160, 180.0, 180.0, 99.5, 79.5, k1=-0.08)
 

@@ -10,11 +10,11 @@ import numpy as np
 from db.citygml.writer import write_citygml
 from db.sequence_package import write_package
 from tests.unit.texture_scene import render
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building
-from workers.pipeline.georef import attitude_from_ned_from_body
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import FrameRecord, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.georef import attitude_from_ned_from_body
+from workers.pipeline.geometry.manifest import FrameRecord, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.pose import Pose
 
 R_WN = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])
 M = np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])  # camera looking forward, level

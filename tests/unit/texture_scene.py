@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building, Polygon, Ring
-from workers.pipeline.geometry import fit_plane, open_ring, surface_axes, to_plane_2d
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building, Polygon, Ring
+from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes, to_plane_2d
+from workers.pipeline.geometry.pose import Pose
 
 SKY_K = 250.0
 

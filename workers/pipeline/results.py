@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workers.pipeline.citymodel import Appearance
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import Radiometry
+from workers.pipeline.geometry.citymodel import Appearance
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.pose import Pose
 
 
 @dataclass(frozen=True, eq=False)

@@ -20,16 +20,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from workers.pipeline.atlas import AtlasOptions, build_atlas
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building, Polygon
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building, Polygon
+from workers.pipeline.geometry.manifest import Accuracy, FrameSource, Radiometry
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
 from workers.pipeline.results import BuildingResult, FramePose, SurfaceStats
-from workers.pipeline.sequence import Accuracy, FrameSource, Radiometry
-from workers.pipeline.texel import TexelGrid, TexelOptions, texel_grid
-from workers.pipeline.texture import FusionOptions, SurfaceTexels, SurfaceTexture, texture_frame
-from workers.pipeline.visibility import (
+from workers.pipeline.texture.atlas import AtlasOptions, build_atlas
+from workers.pipeline.texture.fusion import FusionOptions, SurfaceTexels, SurfaceTexture, texture_frame
+from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
+from workers.pipeline.texture.visibility import (
     OcclusionScene,
     VisibilityOptions,
     boxes_in_frustum,
@@ -38,8 +38,8 @@ from workers.pipeline.visibility import (
 )
 
 if TYPE_CHECKING:  # the orientation modules are optional: only their types are named here
-    from workers.pipeline.coregister_block import UnitSequence
-    from workers.pipeline.orient_sequence import SequenceOrientation
+    from workers.pipeline.orientation.block import UnitSequence
+    from workers.pipeline.orientation.sequence import SequenceOrientation
 
 _log = logging.getLogger(__name__)
 
@@ -266,7 +266,7 @@ def _refine(unit: BuildingUnit, raycaster: RayCaster) -> tuple[dict[int, Pose], 
     if not unit.options.refine:
         return prior, ()
     try:
-        coregister = importlib.import_module("workers.pipeline.coregister")
+        coregister = importlib.import_module("workers.pipeline.orientation.building")
     except ImportError:
         return prior, ()
     extra = {} if unit.options.refine_options is None else {"options": unit.options.refine_options}

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.pipeline.georef import camera_poses
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import Accuracy, ImuSamples, Mounting
+from workers.pipeline.geometry.georef import camera_poses
+from workers.pipeline.geometry.manifest import Accuracy, ImuSamples, Mounting
+from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.synth.common import SynthError, rng_for
 
 #: Platform defaults of the true mounting errors: boresight (deg, about body x, y, z), lever arm (m).

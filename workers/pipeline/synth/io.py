@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workers.pipeline.citymodel import Building
+from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.synth.common import SynthError
 from workers.pipeline.synth.procedural import procedural_block
 from workers.pipeline.synth.scene import SynthResult

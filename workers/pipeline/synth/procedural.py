@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.pipeline.citymodel import Building, Polygon, Ring
+from workers.pipeline.geometry.citymodel import Building, Polygon, Ring
 from workers.pipeline.synth.common import SynthError, rng_for
 
 DEFAULT_ORIGIN = (691000.0, 5334000.0, 520.0)

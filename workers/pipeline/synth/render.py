@@ -28,10 +28,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import SceneMesh, open3d_scene
-from workers.pipeline.sequence import Radiometry
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import SceneMesh, open3d_scene
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.thermal import ThermalScene
 

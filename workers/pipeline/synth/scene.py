@@ -18,10 +18,10 @@ from typing import Literal
 import numpy as np
 import shapely
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building
-from workers.pipeline.raycast import SceneMesh, build_scene_mesh
-from workers.pipeline.sequence import FrameRecord, GroundControl, SequenceManifest
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.manifest import FrameRecord, GroundControl, SequenceManifest
+from workers.pipeline.geometry.raycast import SceneMesh, build_scene_mesh
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.errors import ErrorOptions, InsSimulation, simulate_ins
 from workers.pipeline.synth.render import RADIOMETRY, Renderer, SensorOptions, default_camera
@@ -117,12 +117,12 @@ class SynthResult:
 
 def _manifest_crs(buildings: Sequence[Building], crs: str | None) -> str:
     """The manifest's `crs`: as given, else `EPSG:<horizontal code>` of the buildings' srsName
-    (URNs resolved by `db.crs`), else `"model"` (positions in model coordinates)."""
+    (URNs resolved by `workers.pipeline.geometry.crs`), else `"model"` (positions in model coordinates)."""
     if crs:
         return crs
     srs = next((b.srs_name for b in buildings if b.srs_name), None)
     if srs:
-        from db.crs import UnknownCRSError, horizontal_epsg
+        from workers.pipeline.geometry.crs import UnknownCRSError, horizontal_epsg
 
         try:
             code = horizontal_epsg(srs)
@@ -149,7 +149,7 @@ def _gcps(
     None when no frame sees any."""
     if n <= 0:
         return None
-    from workers.pipeline.raycast import RayCaster
+    from workers.pipeline.geometry.raycast import RayCaster
 
     coords = [r.coords for b in buildings for p in b.iter_polygons() for r in p.rings]
     pts = np.unique(np.round(np.concatenate(coords), 3), axis=0)

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from workers.pipeline.citymodel import Building
-from workers.pipeline.geometry import open_ring
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.polygons import open_ring
 
 
 def footprint(building: Building) -> shapely.Geometry:

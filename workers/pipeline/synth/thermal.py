@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from workers.pipeline.citymodel import Building, Polygon
-from workers.pipeline.geometry import fit_plane, open_ring, surface_axes, to_plane_2d
+from workers.pipeline.geometry.citymodel import Building, Polygon
+from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes, to_plane_2d
 from workers.pipeline.synth.anomaly import Anomaly
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.shapes import footprint_corners, point_inside

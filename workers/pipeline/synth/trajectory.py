@@ -23,7 +23,7 @@ import numpy as np
 import shapely
 from shapely.geometry.polygon import orient
 
-from workers.pipeline.citymodel import Building
+from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.shapes import footprint
 

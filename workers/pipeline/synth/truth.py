@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import Mounting
+from workers.pipeline.geometry.manifest import Mounting
+from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.synth.anomaly import Anomaly
 from workers.pipeline.synth.common import SynthError
 from workers.pipeline.synth.render import SensorOptions

@@ -17,8 +17,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from workers.pipeline.coregister_geometry import so3_log
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import so3_log
 
 __all__ = ["N_PARAMS", "design", "frame_motion"]
 

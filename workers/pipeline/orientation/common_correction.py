@@ -36,21 +36,21 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_coarse import shift_pose
-from workers.pipeline.coregister_edges import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import apply_delta, bounded_step, pose_delta
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.coarse import shift_pose
+from workers.pipeline.orientation.edge_observations import (
     edge_support,
     frame_edges,
     image_normals,
     normal_equations,
     visible_samples,
 )
-from workers.pipeline.coregister_frame import FrameFitOptions
-from workers.pipeline.coregister_geometry import apply_delta, bounded_step, pose_delta
-from workers.pipeline.features import FeatureOptions, ImageFeatures
-from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
+from workers.pipeline.orientation.frame_fit import FrameFitOptions
+from workers.pipeline.orientation.wireframe import EdgeOptions, VisibleWireframe, Wireframe
 
 __all__ = ["JointFit", "JointOptions", "joint_fit"]
 

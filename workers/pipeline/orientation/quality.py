@@ -19,11 +19,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.tracks import Tracks
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.tracks import Tracks
 
 
 def edge_points(building: Building, spacing_m: float = 0.5) -> np.ndarray:

@@ -33,9 +33,9 @@ import numpy as np
 import pyproj
 from scipy.spatial.transform import Rotation, Slerp
 
-from db.crs import UnknownCRSError, horizontal_crs, resolve_crs, same_horizontal
-from workers.pipeline.pose import Pose
-from workers.pipeline.sequence import ImuSamples, Mounting, SequenceManifest
+from workers.pipeline.geometry.crs import UnknownCRSError, horizontal_crs, resolve_crs, same_horizontal
+from workers.pipeline.geometry.manifest import ImuSamples, Mounting, SequenceManifest
+from workers.pipeline.geometry.pose import Pose
 
 __all__ = [
     "R_WORLD_FROM_NED",

@@ -34,20 +34,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister import CoregisterOptions, prior_information
-from workers.pipeline.coregister_block import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.manifest import Accuracy, FrameSource
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.block import (
     BlockOptions,
     UnitSequence,
     adjust_block,
     anchoring,
     block_reason,
 )
-from workers.pipeline.model_edges import WireframeError, mesh_wireframe
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.sequence import Accuracy, FrameSource
-from workers.pipeline.tracks import Tracks
+from workers.pipeline.orientation.building import CoregisterOptions, prior_information
+from workers.pipeline.orientation.tracks import Tracks
+from workers.pipeline.orientation.wireframe import WireframeError, mesh_wireframe
 
 __all__ = [
     "SEQUENCE_PLATFORMS",

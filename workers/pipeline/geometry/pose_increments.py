@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:

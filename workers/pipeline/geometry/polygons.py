@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import mapbox_earcut
 import numpy as np
 
-from workers.pipeline.citymodel import Polygon
+from workers.pipeline.geometry.citymodel import Polygon
 
 _UP = np.array([0.0, 0.0, 1.0])
 

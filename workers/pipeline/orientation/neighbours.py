@@ -24,12 +24,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_coarse import candidate_pose, coarse_scores, shift_penalty, shift_pose
-from workers.pipeline.coregister_frame import FrameFit, FrameFitOptions
-from workers.pipeline.features import ImageFeatures
-from workers.pipeline.model_edges import VisibleWireframe
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.orientation.coarse import candidate_pose, coarse_scores, shift_penalty, shift_pose
+from workers.pipeline.orientation.features import ImageFeatures
+from workers.pipeline.orientation.frame_fit import FrameFit, FrameFitOptions
+from workers.pipeline.orientation.wireframe import VisibleWireframe
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,14 +14,14 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_geometry import so3_exp
-from workers.pipeline.features import ImageFeatures
-from workers.pipeline.model_edges import VisibleWireframe
-from workers.pipeline.pose import Pose
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import so3_exp
+from workers.pipeline.orientation.features import ImageFeatures
+from workers.pipeline.orientation.wireframe import VisibleWireframe
 
 if TYPE_CHECKING:
-    from workers.pipeline.coregister_frame import FrameFitOptions
+    from workers.pipeline.orientation.frame_fit import FrameFitOptions
 
 
 def candidate_pose(pose: Pose, depth_m: float, roll_rad: float = 0.0) -> Pose:

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from workers.pipeline.citymodel import Polygon
-from workers.pipeline.geometry import fit_plane, open_ring, surface_axes, to_plane_2d
+from workers.pipeline.geometry.citymodel import Polygon
+from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes, to_plane_2d
 
 
 class TexelError(ValueError):

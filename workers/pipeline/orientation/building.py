@@ -78,26 +78,34 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building
-from workers.pipeline.coregister_block import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.manifest import Accuracy, FrameSource
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.block import (
     BlockOptions,
     UnitSequence,
     refine_block,
     refine_from_sequence,
     sigma_px,
 )
-from workers.pipeline.coregister_frame import (
+from workers.pipeline.orientation.common_correction import JointOptions, joint_fit
+from workers.pipeline.orientation.features import FeatureError, FeatureOptions, extract_features
+from workers.pipeline.orientation.frame_fit import (
     FrameFit,
     FrameFitOptions,
     apply_delta,
     fit_frame,
     pose_delta,
 )
-from workers.pipeline.coregister_joint import JointOptions, joint_fit
-from workers.pipeline.coregister_sequence import apply_coarse, frame_noise_covariance, joint_coarse, predict
-from workers.pipeline.features import FeatureError, FeatureOptions, extract_features
-from workers.pipeline.model_edges import (
+from workers.pipeline.orientation.neighbours import (
+    apply_coarse,
+    frame_noise_covariance,
+    joint_coarse,
+    predict,
+)
+from workers.pipeline.orientation.wireframe import (
     EdgeOptions,
     Wireframe,
     WireframeError,
@@ -105,10 +113,7 @@ from workers.pipeline.model_edges import (
     mesh_wireframe,
     visible_wireframe,
 )
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
 from workers.pipeline.results import RefinedPose
-from workers.pipeline.sequence import Accuracy, FrameSource
 
 __all__ = ["CoregisterOptions", "RefinedPose", "calibrated_options", "prior_information", "refine_building"]
 

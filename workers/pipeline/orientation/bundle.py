@@ -44,21 +44,21 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_edges import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, project_jacobian, step_scale
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.edge_observations import (
     FrameEdges,
     edge_support,
     frame_edges,
     normal_equations,
     visible_samples,
 )
-from workers.pipeline.coregister_frame import FrameFitOptions
-from workers.pipeline.coregister_geometry import apply_delta, pose_delta, project_jacobian, step_scale
-from workers.pipeline.features import FeatureOptions
-from workers.pipeline.model_edges import EdgeOptions, Wireframe
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.tracks import Tracks
+from workers.pipeline.orientation.features import FeatureOptions
+from workers.pipeline.orientation.frame_fit import FrameFitOptions
+from workers.pipeline.orientation.tracks import Tracks
+from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 
 __all__ = ["BundleOptions", "BundleResult", "bundle_adjust", "track_pairs"]
 

@@ -41,18 +41,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workers.pipeline.bundle import BundleOptions, BundleResult, bundle_adjust
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_edges import edge_support, frame_edges
-from workers.pipeline.coregister_frame import FrameFitOptions, project_jacobian
-from workers.pipeline.coregister_geometry import pose_delta
-from workers.pipeline.coregister_sequence import frame_noise_covariance
-from workers.pipeline.features import FeatureOptions
-from workers.pipeline.model_edges import EdgeOptions, Wireframe
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import pose_delta
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.bundle import BundleOptions, BundleResult, bundle_adjust
+from workers.pipeline.orientation.edge_observations import edge_support, frame_edges
+from workers.pipeline.orientation.features import FeatureOptions
+from workers.pipeline.orientation.frame_fit import FrameFitOptions, project_jacobian
+from workers.pipeline.orientation.neighbours import frame_noise_covariance
+from workers.pipeline.orientation.tracks import TrackOptions, Tracks, track_sequence
+from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 from workers.pipeline.results import RefinedPose
-from workers.pipeline.tracks import TrackOptions, Tracks, track_sequence
 
 __all__ = [
     "BlockOptions",

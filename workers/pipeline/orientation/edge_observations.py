@@ -24,15 +24,20 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_geometry import pose_delta, project_jacobian
-from workers.pipeline.features import FeatureError, FeatureOptions, ImageFeatures, extract_features
-from workers.pipeline.model_edges import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import pose_delta, project_jacobian
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.features import (
+    FeatureError,
+    FeatureOptions,
+    ImageFeatures,
+    extract_features,
+)
+from workers.pipeline.orientation.wireframe import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
 
 if TYPE_CHECKING:  # the options live with the per-frame fit, which imports this module
-    from workers.pipeline.coregister_frame import FrameFitOptions
+    from workers.pipeline.orientation.frame_fit import FrameFitOptions
 
 __all__ = [
     "FrameEdges",

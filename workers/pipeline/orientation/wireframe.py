@@ -26,11 +26,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.citymodel import Building
-from workers.pipeline.geometry import fit_plane, open_ring
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster, SceneMesh
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.polygons import fit_plane, open_ring
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, SceneMesh
 
 ROOF, WALL, GROUND = 0, 1, 2
 EDGE_CLASSES: tuple[str, ...] = ("roof", "wall", "ground")

@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from workers.pipeline.calibrate import SequenceCalibration
-from workers.pipeline.coregister_geometry import so3_exp
-from workers.pipeline.georef import attitude_from_ned_from_body, body_from_cam
-from workers.pipeline.sequence import Mounting
+from workers.pipeline.geometry.georef import attitude_from_ned_from_body, body_from_cam
+from workers.pipeline.geometry.manifest import Mounting
+from workers.pipeline.geometry.pose_increments import so3_exp
+from workers.pipeline.orientation.calibration import SequenceCalibration
 
 __all__ = [
     "calibrated_mounting",

@@ -36,9 +36,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
 
 __all__ = ["TrackOptions", "Tracks", "plane_affine", "texture_strength", "track_sequence"]
 

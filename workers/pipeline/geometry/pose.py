@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
+from workers.pipeline.geometry.camera import Camera
 
 
 @dataclass(frozen=True, eq=False)

@@ -46,29 +46,29 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from workers.pipeline.calibrate_model import N_PARAMS, design, frame_motion
-from workers.pipeline.camera import Camera
-from workers.pipeline.coregister_edges import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.manifest import Accuracy, FrameSource
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import apply_delta
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.calibration_model import N_PARAMS, design, frame_motion
+from workers.pipeline.orientation.common_correction import JointOptions, _gradient, _score, joint_fit
+from workers.pipeline.orientation.edge_observations import (
     edge_support,
     frame_edges,
     image_normals,
     normal_equations,
     visible_samples,
 )
-from workers.pipeline.coregister_frame import FrameFitOptions
-from workers.pipeline.coregister_geometry import apply_delta
-from workers.pipeline.coregister_joint import JointOptions, _gradient, _score, joint_fit
-from workers.pipeline.features import FeatureOptions, ImageFeatures
-from workers.pipeline.model_edges import (
+from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
+from workers.pipeline.orientation.frame_fit import FrameFitOptions
+from workers.pipeline.orientation.wireframe import (
     EdgeOptions,
     VisibleWireframe,
     Wireframe,
     WireframeError,
     mesh_wireframe,
 )
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.sequence import Accuracy, FrameSource
 
 __all__ = [
     "CalibrationOptions",

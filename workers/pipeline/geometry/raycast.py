@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from workers.pipeline.citymodel import Building
-from workers.pipeline.geometry import fit_plane, triangulate
+from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.polygons import fit_plane, triangulate
 
 
 @dataclass(frozen=True, eq=False)

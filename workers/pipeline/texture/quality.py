@@ -17,13 +17,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
-from workers.pipeline.texalign import AlignOptions, align_partial
-from workers.pipeline.texel import TexelGrid
-from workers.pipeline.texture import local_resolution
-from workers.pipeline.visibility import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.texture.alignment import AlignOptions, align_partial
+from workers.pipeline.texture.fusion import local_resolution
+from workers.pipeline.texture.texel import TexelGrid
+from workers.pipeline.texture.visibility import (
     VisibilityOptions,
     boxes_in_frustum,
     buried_texels,

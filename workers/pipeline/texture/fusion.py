@@ -23,11 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
-from workers.pipeline.pose import Pose
-from workers.pipeline.texalign import AlignOptions, align_partial
-from workers.pipeline.texel import TexelGrid
-from workers.pipeline.visibility import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.texture.alignment import AlignOptions, align_partial
+from workers.pipeline.texture.texel import TexelGrid
+from workers.pipeline.texture.visibility import (
     OcclusionScene,
     VisibilityOptions,
     boxes_in_frustum,

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.pipeline.citymodel import Appearance, ParameterizedTexture, Polygon, TextureTarget
+from workers.pipeline.geometry.citymodel import Appearance, ParameterizedTexture, Polygon, TextureTarget
+from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.results import TextureTile
-from workers.pipeline.sequence import Radiometry
-from workers.pipeline.texel import TexelGrid
+from workers.pipeline.texture.texel import TexelGrid
 
 
 class AtlasError(ValueError):

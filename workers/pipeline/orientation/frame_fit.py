@@ -27,19 +27,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
-
-# re-exported: the pose geometry, the edge observations and the coarse stage live in their own modules
-from workers.pipeline.coregister_coarse import coarse_search
-from workers.pipeline.coregister_edges import (
-    edge_search,
-    edge_support,
-    frame_box,
-    matched_edges,
-    normal_equations,
-    visible_samples,
-)
-from workers.pipeline.coregister_geometry import (
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import (
     apply_delta,
     bounded_step,
     pose_delta,
@@ -47,16 +37,26 @@ from workers.pipeline.coregister_geometry import (
     so3_exp,
     so3_log,
 )
-from workers.pipeline.features import (
+from workers.pipeline.geometry.raycast import RayCaster
+
+# re-exported: the pose geometry, the edge observations and the coarse stage live in their own modules
+from workers.pipeline.orientation.coarse import coarse_search
+from workers.pipeline.orientation.edge_observations import (
+    edge_search,
+    edge_support,
+    frame_box,
+    matched_edges,
+    normal_equations,
+    visible_samples,
+)
+from workers.pipeline.orientation.features import (
     FeatureError,
     FeatureOptions,
     ImageFeatures,
     extract_features,
     with_points,
 )
-from workers.pipeline.model_edges import EdgeOptions, Wireframe
-from workers.pipeline.pose import Pose
-from workers.pipeline.raycast import RayCaster
+from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 
 __all__ = [
     "FrameFit",

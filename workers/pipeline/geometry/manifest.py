@@ -12,7 +12,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from workers.pipeline.camera import Camera
+from workers.pipeline.geometry.camera import Camera
 
 FORMAT = "citytherm-sequence/1"
 Platform = Literal["drive", "flight", "terrestrial"]
