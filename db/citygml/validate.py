@@ -3,14 +3,16 @@
 In: a file path. Out: a list of error messages with line numbers (empty = valid).
 
 The schema is a small wrapper importing `citygml/2.0/building.xsd`, `appearance.xsd` and
-`generics.xsd` from the schemas folder: `$CITYTHERM_SCHEMAS`, else `<repo>/../shared/schemas`
-(or `$CITYTHERM_SHARED/schemas`). It is parsed once per folder and cached; no network access.
+`generics.xsd` from the schemas folder: `$CITYTHERM_SCHEMAS`, else the copy shipped with the
+package (`db/citygml/schemas`, package data; see its README). It is parsed once per folder and
+cached; no network access.
 """
 
 from __future__ import annotations
 
 import os
 from functools import lru_cache
+from importlib import resources
 from os import PathLike
 from pathlib import Path
 
@@ -20,18 +22,16 @@ from db.citygml.names import CityGMLError
 
 __all__ = ["citygml2_schema", "schemas_dir", "validate_citygml2"]
 
-_REPO = Path(__file__).resolve().parents[2]
-
 
 def schemas_dir() -> Path:
     """The folder holding `citygml/2.0/*.xsd` (see module docstring)."""
     env = os.environ.get("CITYTHERM_SCHEMAS")
     if env:
         return Path(env)
-    shared = os.environ.get("CITYTHERM_SHARED")
-    if shared:
-        return Path(shared) / "schemas"
-    return _REPO.parent / "shared" / "schemas"
+    folder = resources.files("db.citygml") / "schemas"
+    if not isinstance(folder, Path):  # e.g. installed as a zip: lxml needs real files
+        raise CityGMLError("the bundled CityGML schemas are not plain files here (set CITYTHERM_SCHEMAS)")
+    return folder
 
 
 @lru_cache(maxsize=4)
