@@ -1,6 +1,6 @@
 """CityGML I/O benchmark: streaming read and CityGML 2.0 write of a ~200 MB model.
 
-Builds a large input by replicating the NRW LoD2 tile (`../shared/data/nrw-tile-5659-...gml`,
+Builds a large input by replicating the NRW LoD2 tile (`tests/data/nrw-tile-5659-...gml`,
 109 buildings + 55 parts per copy) with fresh ids (`<id>_c<k>`) and coordinates shifted by whole
 kilometres (copy k at +1000·(k mod 10) m east, +1000·(k // 10) m north), then measures, each phase
 in its own subprocess so that peak RSS figures are separate:
@@ -34,8 +34,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-SHARED = Path(os.environ.get("CITYTHERM_SHARED", REPO.parent / "shared"))
-NRW = SHARED / "data" / "nrw-tile-5659-citygml1-lod2.gml"
+NRW = REPO / "tests" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
 
 _MEMBER = re.compile(rb"<core:cityObjectMember>.*?</core:cityObjectMember>\s*", re.S)
 _ID = re.compile(rb'(gml:id="|xlink:href="#)([^"]+)"')

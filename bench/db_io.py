@@ -31,8 +31,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
-SHARED = Path(os.environ.get("CITYTHERM_SHARED", REPO.parent / "shared"))
-NRW = SHARED / "data" / "nrw-tile-5659-citygml1-lod2.gml"
+NRW = REPO / "tests" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
 PG = os.environ.get("CITYTHERM_BENCH_PG", "postgresql://postgres@127.0.0.1:5432")
 BENCH_DB = "citytherm_bench"
 

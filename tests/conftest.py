@@ -1,27 +1,25 @@
-"""Shared test fixtures: paths to the shared contract data."""
+"""Shared test data: the real CityGML samples, all inside the repository.
+
+`tests/data/` holds five of them (sources and licences in its README); the sixth,
+`berlin-61-buildings-citygml1-lod2.gml`, is the synthetic demo's bundled model
+(`workers.pipeline.synth.BUNDLED_MODEL`) and is not copied a second time.
+"""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-import pytest
+from workers.pipeline.synth import BUNDLED_MODEL
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("CITYTHERM_SHARED", REPO.parent / "shared"))
-DATA = SHARED / "data"
-SCHEMAS = SHARED / "schemas"
+DATA = REPO / "tests" / "data"
+# every real sample, sorted by file name
+SAMPLE_FILES: list[Path] = sorted([*DATA.glob("*.gml"), BUNDLED_MODEL], key=lambda p: p.name)
 
 
-@pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """Folder of the real CityGML samples (`../shared/data`)."""
-    assert DATA.is_dir(), f"shared data not found at {DATA} (set CITYTHERM_SHARED)"
-    return DATA
-
-
-@pytest.fixture(scope="session")
-def schemas_dir() -> Path:
-    """Folder of the CityGML 2.0 schemas (`../shared/schemas`)."""
-    assert SCHEMAS.is_dir(), f"schemas not found at {SCHEMAS} (set CITYTHERM_SHARED)"
-    return SCHEMAS
+def sample(name: str) -> Path:
+    """A real sample by its file name (`DATA / name`, or the bundled Berlin model)."""
+    for p in SAMPLE_FILES:
+        if p.name == name:
+            return p
+    raise FileNotFoundError(f"no CityGML sample {name!r} in {DATA} or {BUNDLED_MODEL.parent}")

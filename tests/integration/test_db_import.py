@@ -18,12 +18,11 @@ from db.errors import InputDataError, ModelExistsError
 from db.export import export_citygml
 from db.geomcodec import polygon_rings_from_wkb
 from db.importer import ImportOptions, import_citygml
-from tests.conftest import DATA
+from tests.conftest import DATA, SAMPLE_FILES
 from workers.pipeline.geometry.crs import horizontal_epsg
+from workers.pipeline.synth import BUNDLED_MODEL
 
 pytestmark = pytest.mark.integration
-
-SAMPLES = sorted(DATA.glob("*.gml"))
 
 
 def _scalar(engine, sql: str, **p):
@@ -31,7 +30,7 @@ def _scalar(engine, sql: str, **p):
         return c.execute(text(sql), p).scalar_one()
 
 
-@pytest.mark.parametrize("path", SAMPLES, ids=[p.stem for p in SAMPLES])
+@pytest.mark.parametrize("path", SAMPLE_FILES, ids=[p.stem for p in SAMPLE_FILES])
 def test_import_sample(db_engine, path: Path) -> None:
     header, buildings = read_model(path)
     name = f"imp-{path.stem}"
@@ -178,7 +177,7 @@ def test_reimport_refused_unless_replace_and_full_checks(db_engine) -> None:
 
 
 def test_failed_import_leaves_nothing(db_engine, monkeypatch) -> None:
-    path = DATA / "berlin-61-buildings-citygml1-lod2.gml"
+    path = BUNDLED_MODEL
     real = importer_mod._write_lines
     calls = {"n": 0}
 
@@ -209,7 +208,7 @@ def test_failed_import_leaves_nothing(db_engine, monkeypatch) -> None:
 
 
 def test_deferred_indexes_and_bbox_export(db_engine, tmp_path) -> None:
-    path = DATA / "berlin-61-buildings-citygml1-lod2.gml"
+    path = BUNDLED_MODEL
     s = import_citygml(
         db_engine, path, name="bbox-berlin", options=ImportOptions(batch_size=25, defer_spatial_indexes=True)
     )

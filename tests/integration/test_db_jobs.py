@@ -22,12 +22,12 @@ from db.jobs import (
     set_unit_status,
 )
 from db.store import store_building_result
-from tests.conftest import DATA
 from tests.integration.test_db_store_export import make_result
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.geometry.manifest import FrameRecord, Mounting, Radiometry, SequenceManifest
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.synth import BUNDLED_MODEL
 
 pytestmark = pytest.mark.integration
 
@@ -44,9 +44,9 @@ def _manifest(n: int) -> SequenceManifest:
 
 
 def test_job_lifecycle_and_sequence(db_engine) -> None:
-    s = import_citygml(db_engine, DATA / "berlin-61-buildings-citygml1-lod2.gml", name="jobs-berlin")
+    s = import_citygml(db_engine, BUNDLED_MODEL, name="jobs-berlin")
 
-    _, buildings = read_model(DATA / "berlin-61-buildings-citygml1-lod2.gml")
+    _, buildings = read_model(BUNDLED_MODEL)
     b0: Building = buildings[0]
     priors = [Pose(np.eye(3), np.array([691000.0 + i, 5334000.0, 521.5])) for i in range(3)]
     with Session(db_engine) as session:

@@ -8,6 +8,7 @@ from pathlib import Path
 import pyproj
 import pytest
 
+from tests.conftest import SAMPLE_FILES
 from workers.pipeline.geometry.crs import (
     UnknownCRSError,
     horizontal_crs,
@@ -41,16 +42,16 @@ KNOWN = {
 }
 
 
-def sample_srs_names(data: Path) -> set[str]:
+def sample_srs_names(files: list[Path]) -> set[str]:
     names: set[str] = set()
-    for f in sorted(data.glob("*.gml")):
+    for f in files:
         with open(f, encoding="utf-8", errors="replace") as fh:
             names.update(re.findall(r'srsName="([^"]+)"', fh.read()))
     return names
 
 
-def test_every_spelling_in_the_samples_resolves(shared_data: Path) -> None:
-    names = sample_srs_names(shared_data)
+def test_every_spelling_in_the_samples_resolves() -> None:
+    names = sample_srs_names(SAMPLE_FILES)
     assert len(names) >= 5, names  # the samples carry at least five different spellings
     for name in names:
         crs = resolve_crs(name)

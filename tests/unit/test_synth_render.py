@@ -7,6 +7,7 @@ import pytest
 import shapely
 
 from db.citygml.reader import read_model
+from tests.conftest import DATA
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.polygons import triangulate
 from workers.pipeline.geometry.pose import Pose
@@ -127,8 +128,8 @@ def test_box_silhouette_subpixel_edges(box):
     assert errors.mean() < 0.2
 
 
-def test_real_lod2_building_silhouette(shared_data):
-    _, blds = read_model(shared_data / "bavaria-1-building-citygml2-lod2.gml")
+def test_real_lod2_building_silhouette():
+    _, blds = read_model(DATA / "bavaria-1-building-citygml2-lod2.gml")
     mesh = build_scene_mesh(blds)
     thermal = ThermalScene(blds, mesh.polygon_ids, seed=2, options=FLAT)
     lo, hi = blds[0].bounds()
