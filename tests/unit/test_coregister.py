@@ -16,6 +16,7 @@ from tests.unit.orientation_scenes import (
 )
 from workers.pipeline.geometry.manifest import Accuracy
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, project_jacobian
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.building import (
     CoregisterOptions,
@@ -23,7 +24,6 @@ from workers.pipeline.orientation.building import (
     prior_information,
     refine_building,
 )
-from workers.pipeline.orientation.frame_fit import apply_delta, pose_delta, project_jacobian
 from workers.pipeline.orientation.quality import efficiency, match_quality, point_quality
 
 B1 = box_building("B1", 0, 0, 20, 12, 9, ridge=4)

@@ -43,12 +43,12 @@ import numpy as np
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
-from workers.pipeline.geometry.pose_increments import pose_delta
+from workers.pipeline.geometry.pose_increments import pose_delta, project_jacobian
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.bundle import BundleOptions, BundleResult, bundle_adjust
 from workers.pipeline.orientation.edge_observations import edge_support, frame_edges
 from workers.pipeline.orientation.features import FeatureOptions
-from workers.pipeline.orientation.frame_fit import FrameFitOptions, project_jacobian
+from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.neighbours import frame_noise_covariance
 from workers.pipeline.orientation.tracks import TrackOptions, Tracks, track_sequence
 from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe

@@ -82,6 +82,7 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.geometry.manifest import Accuracy, FrameSource
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.block import (
     BlockOptions,
@@ -92,13 +93,8 @@ from workers.pipeline.orientation.block import (
 )
 from workers.pipeline.orientation.common_correction import JointOptions, joint_fit
 from workers.pipeline.orientation.features import FeatureError, FeatureOptions, extract_features
-from workers.pipeline.orientation.frame_fit import (
-    FrameFit,
-    FrameFitOptions,
-    apply_delta,
-    fit_frame,
-    pose_delta,
-)
+from workers.pipeline.orientation.fit_options import FrameFitOptions
+from workers.pipeline.orientation.frame_fit import FrameFit, fit_frame
 from workers.pipeline.orientation.neighbours import (
     apply_coarse,
     frame_noise_covariance,

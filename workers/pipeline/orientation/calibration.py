@@ -61,7 +61,7 @@ from workers.pipeline.orientation.edge_observations import (
     visible_samples,
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
-from workers.pipeline.orientation.frame_fit import FrameFitOptions
+from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.wireframe import (
     EdgeOptions,
     VisibleWireframe,

@@ -9,8 +9,6 @@ translation across the optical axis, split by their a-priori standard deviations
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import cv2
 import numpy as np
 
@@ -18,10 +16,8 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import so3_exp
 from workers.pipeline.orientation.features import ImageFeatures
+from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.wireframe import VisibleWireframe
-
-if TYPE_CHECKING:
-    from workers.pipeline.orientation.frame_fit import FrameFitOptions
 
 
 def candidate_pose(pose: Pose, depth_m: float, roll_rad: float = 0.0) -> Pose:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -34,10 +33,8 @@ from workers.pipeline.orientation.features import (
     ImageFeatures,
     extract_features,
 )
+from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.wireframe import EdgeOptions, VisibleWireframe, Wireframe, visible_wireframe
-
-if TYPE_CHECKING:  # the options live with the per-frame fit, which imports this module
-    from workers.pipeline.orientation.frame_fit import FrameFitOptions
 
 __all__ = [
     "FrameEdges",

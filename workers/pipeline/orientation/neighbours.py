@@ -28,7 +28,8 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.orientation.coarse import candidate_pose, coarse_scores, shift_penalty, shift_pose
 from workers.pipeline.orientation.features import ImageFeatures
-from workers.pipeline.orientation.frame_fit import FrameFit, FrameFitOptions
+from workers.pipeline.orientation.fit_options import FrameFitOptions
+from workers.pipeline.orientation.frame_fit import FrameFit
 from workers.pipeline.orientation.wireframe import VisibleWireframe
 
 
