@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from workers.pipeline.geometry.georef import prior_poses
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import pose_delta
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.building import CoregisterOptions, calibrated_options, refine_building
 from workers.pipeline.orientation.calibration import (
@@ -46,7 +47,6 @@ from workers.pipeline.orientation.calibration import (
     calibrate_sequence,
     calibrated_accuracy,
 )
-from workers.pipeline.orientation.frame_fit import pose_delta
 from workers.pipeline.orientation.quality import edge_points, tie_errors
 from workers.pipeline.orientation.quality import reprojection_rms as quality_rms
 from workers.pipeline.orientation.sequence import SEQUENCE_PLATFORMS, orient_sequence
@@ -71,7 +71,7 @@ def reprojection_rms(camera, pts: np.ndarray, pose: Pose, truth: Pose) -> float:
 
 def offset_pose(pose: Pose, d_m: float, d_deg: float) -> Pose:
     """True pose moved by `d_m` along world x, y and z and rotated by `d_deg` about each camera axis."""
-    from workers.pipeline.orientation.frame_fit import so3_exp
+    from workers.pipeline.geometry.pose_increments import so3_exp
 
     R = pose.R_world_from_cam @ so3_exp(np.radians([d_deg, d_deg, d_deg]))
     return Pose(R, pose.center + d_m)
