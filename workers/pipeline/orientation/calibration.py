@@ -52,7 +52,7 @@ from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.calibration_model import N_PARAMS, design, frame_motion
-from workers.pipeline.orientation.common_correction import JointOptions, _gradient, _score, joint_fit
+from workers.pipeline.orientation.common_correction import JointOptions, joint_fit
 from workers.pipeline.orientation.edge_observations import (
     edge_support,
     frame_edges,
@@ -62,6 +62,7 @@ from workers.pipeline.orientation.edge_observations import (
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
+from workers.pipeline.orientation.oriented_gradient import downsampled_gradient, oriented_gradient_score
 from workers.pipeline.orientation.wireframe import (
     EdgeOptions,
     VisibleWireframe,
@@ -329,7 +330,7 @@ def _delay_search(
     camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame],
     images: Mapping[int, np.ndarray], theta0: np.ndarray, options: CalibrationOptions,
 ) -> float:
-    """Time delay τ (s) maximising the oriented-gradient score (`coregister_joint._score`) of the
+    """Time delay τ (s) maximising the oriented-gradient score (`oriented_gradient`) of the
     scene wireframe over the frames, the other parameters at `theta0`; 0 when no frame turns or
     moves enough for τ to matter."""
     taus = np.arange(-options.delay_search_s, options.delay_search_s + 1e-12, options.delay_step_s)
@@ -356,7 +357,8 @@ def _delay_search(
             th = theta0.copy()
             th[9] = tau
             cand.append(apply_delta(f.prior, f.A @ th).project(camera, vis.points[ok])[0])
-        total += _score(_gradient(images[f.index], 2, 1.0), 2, np.stack(cand), nrm, vis.weight[ok])
+        grad = downsampled_gradient(images[f.index], 2, 1.0)
+        total += oriented_gradient_score(grad, 2, np.stack(cand), nrm, vis.weight[ok])
         used += 1
     if used == 0:
         return 0.0

@@ -33,7 +33,6 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 
 from workers.pipeline.geometry.camera import Camera
@@ -50,6 +49,7 @@ from workers.pipeline.orientation.edge_observations import (
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
+from workers.pipeline.orientation.oriented_gradient import downsampled_gradient, oriented_gradient_score
 from workers.pipeline.orientation.wireframe import EdgeOptions, VisibleWireframe, Wireframe
 
 __all__ = ["JointFit", "JointOptions", "joint_fit"]
@@ -189,32 +189,6 @@ def joint_fit(
     return replace(fit, accepted=not reason, reason=reason)
 
 
-def _gradient(img: np.ndarray, ds: int, sigma: float) -> tuple[np.ndarray, float]:
-    """Image `(H, W)` downsampled by `ds` and smoothed by `sigma` (downsampled pixels) ->
-    gradients `(h, w, 2)` and their robust scale (95th percentile of the magnitude)."""
-    small = cv2.resize(img, (img.shape[1] // ds, img.shape[0] // ds), interpolation=cv2.INTER_AREA)
-    small = cv2.GaussianBlur(small.astype(np.float32), (0, 0), sigma)
-    gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    return np.dstack([gx, gy]), float(np.percentile(np.hypot(gx, gy), 95)) or 1e-6
-
-
-def _score(
-    grad: tuple[np.ndarray, float], ds: int, uv: np.ndarray, nrm: np.ndarray, w: np.ndarray
-) -> np.ndarray:
-    """Oriented-gradient score `(K,)` of candidate sample positions `uv` `(K, N, 2)` (full-resolution
-    pixels) with edge normals `nrm` `(N, 2)` and weights `w` `(N,)`: weighted mean over samples of
-    (gradient along the normal − across it) / scale, clipped to ±1; 0 outside the frame."""
-    g, ref = grad
-    pu = np.nan_to_num((uv[..., 0] + 0.5) / ds - 0.5, nan=-1e4).astype(np.float32)
-    pv = np.nan_to_num((uv[..., 1] + 0.5) / ds - 0.5, nan=-1e4).astype(np.float32)
-    gg = cv2.remap(g, pu, pv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    along = np.abs(gg[..., 0] * nrm[None, :, 0] + gg[..., 1] * nrm[None, :, 1])
-    across = np.abs(gg[..., 0] * nrm[None, :, 1] - gg[..., 1] * nrm[None, :, 0])
-    sc = np.clip((along - across) / ref, -1.0, 1.0)
-    return (sc * w[None]).sum(axis=1) / max(float(w.sum()), 1e-9)
-
-
 def _peaks(score: np.ndarray, n: int, sep: int) -> list[tuple[int, ...]]:
     """Indices of the `n` best local maxima of `score` (any dimension), `sep` cells apart."""
     work = score.copy()
@@ -262,8 +236,8 @@ def _coarse_candidates(
     total = np.zeros(len(shifts))
     grads = {}
     for fr, _, uv, nrm, w, _ in samples:
-        grads[fr.index] = _gradient(images[fr.index], ds, options.coarse_sigma_px)
-        total += _score(grads[fr.index], ds, uv[None] + shifts[:, None], nrm, w)
+        grads[fr.index] = downsampled_gradient(images[fr.index], ds, options.coarse_sigma_px)
+        total += oriented_gradient_score(grads[fr.index], ds, uv[None] + shifts[:, None], nrm, w)
     dmed = float(np.median([smp[5] for smp in samples]))
     centre = np.array([camera.cx, camera.cy])
     ref_pose = data[len(data) // 2].prior
@@ -276,7 +250,8 @@ def _coarse_candidates(
     levels = ((options.translation_max_m, options.translation_step_m, options.translation_downsample,
                options.translation_sigma_px),
               (options.translation_step_m, options.translation_step_m / 4, ds, options.coarse_sigma_px))
-    coarse_grads = {fr.index: _gradient(images[fr.index], levels[0][2], levels[0][3]) for fr, *_ in samples}
+    coarse_grads = {fr.index: downsampled_gradient(images[fr.index], levels[0][2], levels[0][3])
+                    for fr, *_ in samples}
     centres = [np.zeros(3)]
     for lev, (half, st, lds, _) in enumerate(levels):
         found = []
@@ -290,7 +265,7 @@ def _coarse_candidates(
                 Xc = (X - fr.prior.center) @ Rt.T
                 uvk = camera.project(Xc[None] - (dcs @ Rt.T)[:, None])
                 grad = coarse_grads[fr.index] if lev == 0 else grads[fr.index]
-                tot += _score(grad, lds, uvk, nrm, w)
+                tot += oriented_gradient_score(grad, lds, uvk, nrm, w)
             shape = gx_.shape
             n = options.translation_candidates if lev == 0 else 1
             found += [(float(tot.reshape(shape)[k]), dcs[np.ravel_multi_index(k, shape)])
