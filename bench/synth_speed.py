@@ -21,13 +21,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from db.citygml.reader import read_model
-from workers.pipeline.synth import (
-    BUNDLED_MODEL,
-    SynthOptions,
-    procedural_block,
-    synthesize,
-    write_synthetic_package,
-)
+from db.synth_files import write_synthetic_package
+from workers.pipeline.synth import BUNDLED_MODEL, SynthOptions, procedural_block, synthesize
 
 
 def fps(result, n: int) -> dict:

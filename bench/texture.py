@@ -25,15 +25,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from db.citygml.reader import read_model
-from services.runner import RunOptions, run_job
-from services.synth_eval import texture_accuracy
-from workers.pipeline.synth import (
-    BUNDLED_MODEL,
-    ErrorOptions,
-    SynthOptions,
-    synthesize,
-    write_synthetic_package,
-)
+from db.synth_files import write_synthetic_package
+from workers.job import RunOptions
+from workers.pipeline.synth import BUNDLED_MODEL, ErrorOptions, SynthOptions, synthesize
+from workers.run import run_job
+from workers.synth_eval import texture_accuracy
 
 
 def main() -> None:
@@ -80,7 +76,7 @@ def main() -> None:
             BUNDLED_MODEL,
             pkg,
             dest,
-            RunOptions(resolution_px_per_m=a.resolution, workers=w, refine=False, display=False),
+            RunOptions.build(resolution_px_per_m=a.resolution, workers=w, refine=False, display=False),
         )
         wall = time.perf_counter() - t1
         c2 = os.times()

@@ -17,7 +17,6 @@ theme only that theme's appearances are written, and only buildings that have on
 
 from __future__ import annotations
 
-import json
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Mapping, Sequence
@@ -33,6 +32,7 @@ from db.appearance_rows import load_texture_params, surface_data_from_rows
 from db.citygml.writer import write_citygml
 from db.errors import CityDBError, NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
+from db.results_folder.write import anomalies_document, write_json
 from db.session import as_engine
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture, Polygon, Ring
 
@@ -428,8 +428,5 @@ def _write_anomalies(
             }
         )
     if features or f.theme is not None or f.job_id is not None:
-        doc: dict[str, Any] = {"type": "FeatureCollection", "features": features}
-        if srs_name:
-            doc["crs"] = {"type": "name", "properties": {"name": srs_name}}
-        path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        write_json(path, anomalies_document(features, srs_name))
     return len(features)

@@ -1,6 +1,6 @@
 """Engine and session factory for the city model database.
 
-In: a `services.settings.Settings` (its `database_url`) or a URL string. Out: SQLAlchemy
+In: a `db.settings.Settings` (its `database_url`) or a URL string. Out: SQLAlchemy
 `Engine` / `sessionmaker`. Plain `postgresql://` URLs are turned into the psycopg 3 driver URL.
 Nothing is read at import time.
 """
@@ -11,7 +11,7 @@ from sqlalchemy import Engine, create_engine
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.settings import Settings
+from db.settings import Settings
 
 __all__ = ["as_engine", "make_engine", "make_session_factory", "psycopg_url", "sqlalchemy_url"]
 

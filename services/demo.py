@@ -25,16 +25,11 @@ from rich.console import Console
 from rich.table import Table
 
 from db.citygml.reader import read_model
+from db.synth_files import write_synthetic_package
 from services.cli.run_cmd import run_with_progress, summary_table
-from services.runner import RunOptions, refine_available
-from services.synth_eval import orientation_accuracy, texture_accuracy
-from workers.pipeline.synth import (
-    BUNDLED_MODEL,
-    ErrorOptions,
-    SynthOptions,
-    synthesize,
-    write_synthetic_package,
-)
+from workers.job import RunOptions
+from workers.pipeline.synth import BUNDLED_MODEL, ErrorOptions, SynthOptions, synthesize
+from workers.synth_eval import orientation_accuracy, texture_accuracy
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,8 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     pkg = write_synthetic_package(res, out / "sequence", out / "sequence.truth.json")
     console.print(f"package written to {pkg} in {time.perf_counter() - t0:.0f} s")
 
-    refine = refine_available() and a.gnss_errors and not a.no_refine
-    options = RunOptions(workers=max(1, a.workers), refine=refine, buildings=tuple(res.truth.cluster))
+    refine = a.gnss_errors and not a.no_refine
+    options = RunOptions.build(workers=max(1, a.workers), refine=refine, buildings=tuple(res.truth.cluster))
     console.print(
         f"citytherm run {BUNDLED_MODEL.name} {pkg.name} -o {out / 'results'} --workers {options.workers}"
         + ("" if refine else " --no-refine")

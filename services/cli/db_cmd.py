@@ -11,7 +11,7 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
-from services.settings import get_settings
+from db.settings import get_settings
 
 console = Console()
 db_app = typer.Typer(help="City model database schema (Alembic migrations).", no_args_is_help=True)

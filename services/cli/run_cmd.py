@@ -11,7 +11,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from services.runner import RunError, RunOptions, RunSummary, refine_available, run_job
+from workers.job import RunError, RunOptions
+from workers.run import RunSummary, run_job
+
+#: the library's defaults are the command line's
+_DEFAULTS = RunOptions()
 
 _LABELS = {
     "ingest": "read model and package",
@@ -98,10 +102,14 @@ def run(
     city: Path = typer.Argument(..., help="CityGML file (1.0, 2.0 or 3.0)."),
     package: Path = typer.Argument(..., help="Sequence package: folder, sequence.json, .zip or .tar(.gz)."),
     out: Path = typer.Option(..., "-o", "--out", help="Results folder (created)."),
-    resolution: float = typer.Option(10.0, "--resolution", help="Texels per metre on every surface."),
-    theme: str = typer.Option("thermal-ir", "--theme", help="Appearance theme of the textures."),
+    resolution: float = typer.Option(
+        _DEFAULTS.resolution_px_per_m, "--resolution", help="Texels per metre on every surface."
+    ),
+    theme: str = typer.Option(_DEFAULTS.theme, "--theme", help="Appearance theme of the textures."),
     buildings: str | None = typer.Option(None, "--buildings", help="Comma-separated building ids."),
-    workers: int = typer.Option(1, "--workers", min=1, help="Processes for the building units."),
+    workers: int = typer.Option(
+        _DEFAULTS.workers, "--workers", min=1, help="Processes for the building units."
+    ),
     no_refine: bool = typer.Option(False, "--no-refine", help="Keep the GNSS/INS prior poses."),
     no_calibrate: bool = typer.Option(
         False,
@@ -120,13 +128,12 @@ def run(
     """Texture every building the sequence sees and write the results folder."""
     console = Console()
     ids = tuple(b.strip() for b in buildings.split(",") if b.strip()) if buildings else None
-    refine = (not no_refine) and refine_available()
-    options = RunOptions(
+    options = RunOptions.build(
         resolution_px_per_m=resolution,
         theme=theme,
+        refine=False if no_refine else None,  # None: the library's default (on)
         buildings=ids,
         workers=workers,
-        refine=refine,
         calibrate=not no_calibrate,
         orient=not no_orient,
         display=not no_display,
@@ -147,8 +154,8 @@ def run(
         + ", ".join(f"{k} {v:.1f} s" for k, v in t.items())
         + f"; results in {summary.out_dir}"
     )
-    if not refine:
-        console.print("poses: GNSS/INS priors (refinement " + ("off)" if no_refine else "not installed)"))
+    if not options.refine:
+        console.print("poses: GNSS/INS priors (refinement off)")
     elif summary.calibration is not None:
         console.print(calibration_line(summary.calibration))
         if summary.orientation and summary.orientation.get("run"):

@@ -19,6 +19,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from db.sequence_package import PackageError
+from db.synth_files import write_synthetic_package
 from workers.pipeline.synth import (
     BUNDLED_MODEL,
     DriveOptions,
@@ -30,7 +31,6 @@ from workers.pipeline.synth import (
     default_camera,
     procedural_block,
     synthesize,
-    write_synthetic_package,
 )
 
 

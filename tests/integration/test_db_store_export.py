@@ -22,8 +22,8 @@ from db.citygml.validate import validate_citygml2
 from db.errors import InputDataError
 from db.export import export_citygml
 from db.importer import import_citygml
+from db.results_folder.write import write_textured_gml, write_tile
 from db.store import create_job, store_building_result
-from services.results_files import write_textured_gml, write_tile
 from tests.conftest import DATA
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture, TextureTarget
 from workers.pipeline.geometry.manifest import Radiometry

@@ -14,15 +14,18 @@ from typer.testing import CliRunner
 from db.citygml.reader import read_model
 from db.citygml.validate import validate_citygml2
 from services.cli import app
-from services.runner import RunError, RunOptions, run_job
 from tests.unit.texture_package import write_scene
 from tests.unit.texture_scene import box_building, field, look_at
+from workers.job import RunError, RunOptions
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import ParameterizedTexture
-from workers.pipeline.geometry.manifest import Radiometry
-from workers.pipeline.units import ArrayFrameSource, plan_units, run_building_unit
+from workers.pipeline.geometry.manifest import MemoryFrames, Radiometry
+from workers.pipeline.plan import plan_units
+from workers.pipeline.units import UnitOptions, run_building_unit
+from workers.run import run_job
 
 CAM = Camera(240, 192, 220.0, 220.0, 119.5, 95.5, k1=-0.05)
+NO_REFINE = UnitOptions(refine=None)
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +42,7 @@ def scene(tmp_path_factory):
 def job(scene):
     folder, gml, pkg, _, _ = scene
     out = folder / "out"
-    return out, run_job(gml, pkg, out, RunOptions(resolution_px_per_m=10))
+    return out, run_job(gml, pkg, out, RunOptions.build(resolution_px_per_m=10, refine=False))
 
 
 def test_results_folder_has_the_spec_files_and_valid_citygml_with_the_same_ids(scene, job):
@@ -124,7 +127,7 @@ def test_orientation_and_report_documents(scene, job):
 def test_units_are_picklable_and_runs_are_reproducible(scene):
     _, _, _, buildings, poses = scene
     frames = {i: np.full((CAM.height, CAM.width), 280.0, np.float32) for i in range(len(poses))}
-    units = plan_units(buildings, CAM, poses, ArrayFrameSource(frames), Radiometry())
+    units = plan_units(buildings, CAM, poses, MemoryFrames(frames), Radiometry(), options=NO_REFINE)
     assert [u.building.id for u in units] == ["B1", "B2"]
     assert [o.id for o in units[0].occluders] == ["B2"]
     u2 = pickle.loads(pickle.dumps(units[0]))
@@ -139,7 +142,7 @@ def test_units_are_picklable_and_runs_are_reproducible(scene):
 def test_bad_input_names_what_is_wrong(scene, tmp_path):
     _, gml, pkg, _, _ = scene
     with pytest.raises(RunError, match="NOPE"):
-        run_job(gml, pkg, tmp_path / "o", RunOptions(buildings=("NOPE",)))
+        run_job(gml, pkg, tmp_path / "o", RunOptions.build(buildings=("NOPE",), refine=False))
     with pytest.raises(RunError, match="city model not found"):
         run_job(tmp_path / "missing.gml", pkg, tmp_path / "o")
 
@@ -160,18 +163,18 @@ def test_cli_with_two_workers_gives_the_same_textures(scene, job, tmp_path):
 
 
 def test_a_failing_building_is_reported_and_the_others_are_written(scene, tmp_path, monkeypatch):
-    import services.runner as runner
+    import workers.job as job_module
 
     _, gml, pkg, _, _ = scene
-    real = runner.run_building_unit
+    real = job_module.run_building_unit
 
     def flaky(unit):
         if unit.building.id == "B2":
             raise ValueError("broken geometry")
         return real(unit)
 
-    monkeypatch.setattr(runner, "run_building_unit", flaky)
-    summary = run_job(gml, pkg, tmp_path / "o", RunOptions(display=False))
+    monkeypatch.setattr(job_module, "run_building_unit", flaky)
+    summary = run_job(gml, pkg, tmp_path / "o", RunOptions.build(display=False, refine=False))
     assert [f.building_id for f in summary.failures] == ["B2"]
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["failed"] == [{"id": "B2", "error": "ValueError: broken geometry"}]
@@ -182,7 +185,7 @@ def test_a_failing_building_is_reported_and_the_others_are_written(scene, tmp_pa
 
 def test_8bit_frames_keep_their_values_in_the_tiles(tmp_path):
     from db.sequence_package import open_package, write_package
-    from services.runner import output_radiometry
+    from workers.pipeline.results import output_radiometry
 
     src = tmp_path / "src"
     src.mkdir()
@@ -192,48 +195,48 @@ def test_8bit_frames_keep_their_values_in_the_tiles(tmp_path):
     m = open_package(pkg).manifest
     frames8 = [np.full((CAM.height, CAM.width), 200, np.uint8)]
     pkg8 = write_package(tmp_path / "seq8", m, frames8)
-    assert output_radiometry(open_package(pkg8)) == Radiometry(m.radiometry.unit, 1.0, 0.0)
-    run_job(gml, pkg8, tmp_path / "o8", RunOptions(display=False))
+    with open_package(pkg8) as p8:
+        assert output_radiometry(p8.manifest.radiometry, p8.frames.raw(0).dtype) == Radiometry(
+            m.radiometry.unit, 1.0, 0.0
+        )
+    run_job(gml, pkg8, tmp_path / "o8", RunOptions.build(display=False, refine=False))
     dn = cv2.imread(str(tmp_path / "o8" / "textures" / "B8_0.png"), cv2.IMREAD_UNCHANGED)
     assert set(np.unique(dn).tolist()) == {0, 200}
 
 
 def test_a_texel_resolution_finer_than_the_frames_can_give_is_warned_about(scene):
-    from services.runner import plan_job
+    from workers.job import calibrate, ingest, orient, plan
 
     _, gml, pkg, _, _ = scene
-    fine = plan_job(gml, pkg, RunOptions(resolution_px_per_m=200))
-    ok = plan_job(gml, pkg, RunOptions(resolution_px_per_m=10))
-    fine.package.close()
-    ok.package.close()
+
+    def planned(options):
+        ingested = ingest(gml, pkg, options)
+        calibrated = calibrate(ingested, options)
+        return plan(ingested, calibrated, orient(ingested, calibrated, options), options)
+
+    fine = planned(RunOptions.build(resolution_px_per_m=200, refine=False))
+    ok = planned(RunOptions.build(resolution_px_per_m=10, refine=False))
     assert fine.warning is not None and "--resolution" in fine.warning
     assert ok.warning is None
 
 
 def test_refinement_is_reported_and_a_failing_refinement_keeps_the_priors(scene, tmp_path, monkeypatch):
-    """The orientation module's answer (here a stand-in) goes to orientation.json; when it raises,
-    the building is textured with its priors."""
-    import importlib.util
-    import sys
-    import types
-
+    """The refiner's answer (here a stand-in) goes to orientation.json; when it raises, the
+    building is textured with its priors."""
     _, gml, pkg, _, poses = scene
 
     class Refined:
         def __init__(self, frame, pose, status):
             self.frame, self.pose, self.status, self.rms_px, self.matches = frame, pose, status, 0.4, 12
 
-    def refine_building(camera, building, raycaster, frames, frame_source, prior, accuracy, times=None):
+    def refine_building(camera, building, raycaster, frames, frame_source, prior, accuracy, **_):
         if building.id == "B2":
             raise RuntimeError("no edges")
         return {f: Refined(f, prior[f], "refined" if f % 2 == 0 else "prior") for f in frames}
 
-    fake = types.ModuleType("workers.pipeline.orientation.building")
-    fake.__spec__ = importlib.util.spec_from_loader("workers.pipeline.orientation.building", loader=None)
-    fake.refine_building = refine_building
-    monkeypatch.setitem(sys.modules, "workers.pipeline.orientation.building", fake)
     # no calibration: the stand-in must see the manifest's priors
-    run_job(gml, pkg, tmp_path / "r", RunOptions(refine=True, calibrate=False, display=False))
+    options = RunOptions.build(refine=True, calibrate=False, display=False)
+    run_job(gml, pkg, tmp_path / "r", options, refiner=refine_building)
     doc = json.loads((tmp_path / "r" / "orientation.json").read_text())
     entries = [(f["index"], r["building"], r["status"]) for f in doc["frames"] for r in f["refined"]]
     b1 = [e for e in entries if e[1] == "B1"]
@@ -249,12 +252,13 @@ def test_refinement_is_reported_and_a_failing_refinement_keeps_the_priors(scene,
 
 
 def test_results_folder_from_in_memory_results_as_the_service_writes_it(scene, tmp_path):
+    from db.results_folder.write import write_results_folder
     from db.sequence_package import open_package
-    from services.results_files import write_results_folder
+    from workers.pipeline.texture.texel import TexelOptions
 
     _, _, pkg_path, buildings, poses = scene
     pkg = open_package(pkg_path)
-    units = plan_units(buildings, CAM, poses, pkg.frames, pkg.manifest.radiometry)
+    units = plan_units(buildings, CAM, poses, pkg.frames, pkg.manifest.radiometry, options=NO_REFINE)
     results = [run_building_unit(u) for u in units]
     write_results_folder(
         tmp_path / "svc",
@@ -264,7 +268,7 @@ def test_results_folder_from_in_memory_results_as_the_service_writes_it(scene, t
         priors=poses,
         srs_name="EPSG:25832",
         theme="thermal-ir",
-        resolution_px_per_m=10.0,
+        texel=TexelOptions(resolution_px_per_m=10.0),
     )
     for name in (
         "textured.gml",
@@ -280,7 +284,7 @@ def test_results_folder_from_in_memory_results_as_the_service_writes_it(scene, t
 
 
 def test_only_buildings_within_reach_of_the_cameras_are_kept():
-    from services.runner import near_buildings
+    from workers.pipeline.plan import near_buildings
 
     near = box_building("NEAR", 0, 0, 5, 5, 5)
     far = box_building("FAR", 900, 900, 905, 905, 5)
@@ -294,9 +298,9 @@ def test_refinement_calibrates_the_sequence_first_and_reports_the_mounting(tmp_p
     manifest-only ones."""
     from db.citygml.writer import write_citygml
     from db.sequence_package import open_package
+    from db.synth_files import write_synthetic_package as write_synth
     from workers.pipeline.geometry.georef import prior_poses
     from workers.pipeline.synth import ErrorOptions, SynthOptions, procedural_block, synthesize
-    from workers.pipeline.synth import write_synthetic_package as write_synth
 
     blds = procedural_block(6, seed=1)
     res = synthesize(blds, SynthOptions(n_frames=8, seed=1, buildings=2, errors=ErrorOptions(enabled=False)))
@@ -305,7 +309,7 @@ def test_refinement_calibrates_the_sequence_first_and_reports_the_mounting(tmp_p
     pkg = write_synth(res, tmp_path / "seq")
     stages: list[str] = []
     summary = run_job(
-        gml, pkg, tmp_path / "out", RunOptions(resolution_px_per_m=2, refine=True, display=False),
+        gml, pkg, tmp_path / "out", RunOptions.build(resolution_px_per_m=2, refine=True, display=False),
         progress=lambda stage, done, total: stages.append(stage),
     )
     assert "calibrate" in stages and stages.index("calibrate") < stages.index("plan")
@@ -332,7 +336,7 @@ def test_cli_no_calibrate_turns_the_stage_off(
     scene: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     import services.cli.run_cmd as run_cmd
-    from services.runner import RunSummary
+    from workers.run import RunSummary
 
     _, gml, pkg, _, _ = scene
     seen: list[RunOptions] = []
@@ -344,7 +348,6 @@ def test_cli_no_calibrate_turns_the_stage_off(
         return RunSummary(tmp_path, 0, 0, [], [], {}, {}, options.refine, calibration={"run": False})
 
     monkeypatch.setattr(run_cmd, "run_job", fake_run_job)
-    monkeypatch.setattr(run_cmd, "refine_available", lambda: True)
     for flags, want in (([], True), (["--no-calibrate"], False)):
         res = CliRunner().invoke(app, ["run", str(gml), str(pkg), "-o", str(tmp_path / "o"), *flags])
         assert res.exit_code == 0, res.output

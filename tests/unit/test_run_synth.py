@@ -10,15 +10,11 @@ import pytest
 
 from db.citygml.reader import read_model
 from db.citygml.validate import validate_citygml2
-from services.runner import RunOptions, run_job
-from services.synth_eval import texture_accuracy
-from workers.pipeline.synth import (
-    BUNDLED_MODEL,
-    ErrorOptions,
-    SynthOptions,
-    synthesize,
-    write_synthetic_package,
-)
+from db.synth_files import write_synthetic_package
+from workers.job import RunOptions
+from workers.pipeline.synth import BUNDLED_MODEL, ErrorOptions, SynthOptions, synthesize
+from workers.run import run_job
+from workers.synth_eval import texture_accuracy
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +35,7 @@ def drive(tmp_path_factory):
     pkg = write_synthetic_package(res, folder / "seq")
     out = folder / "out"
     summary = run_job(
-        BUNDLED_MODEL, pkg, out, RunOptions(resolution_px_per_m=10, refine=False, display=False)
+        BUNDLED_MODEL, pkg, out, RunOptions.build(resolution_px_per_m=10, refine=False, display=False)
     )
     return res, out, summary
 
@@ -79,10 +75,10 @@ def test_drive_with_gnss_ins_errors_is_oriented_and_textured_to_the_bars(tmp_pat
     bars (RMSE ≤ 0.45 K, misregistration ≤ 0.5 texel) with margin; without refinement they are
     far off."""
     from db.citygml.writer import write_citygml
-    from services.synth_eval import orientation_accuracy
     from tests.unit.orientation_scenes import reprojection_rms
     from workers.pipeline.geometry.pose import Pose
     from workers.pipeline.synth import procedural_block
+    from workers.synth_eval import orientation_accuracy
 
     blds = procedural_block(6, seed=1)
     gml = tmp_path / "city.gml"
@@ -90,7 +86,7 @@ def test_drive_with_gnss_ins_errors_is_oriented_and_textured_to_the_bars(tmp_pat
     opts = SynthOptions(platform="drive", n_frames=24, seed=1, buildings=2, model_path=str(gml))
     res = synthesize(blds, opts)
     pkg = write_synthetic_package(res, tmp_path / "seq")
-    summary = run_job(gml, pkg, tmp_path / "out", RunOptions(refine=True, display=False))
+    summary = run_job(gml, pkg, tmp_path / "out", RunOptions.build(refine=True, display=False))
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     assert rep["calibration"]["accepted"] is True
     so = rep["sequence_orientation"]

@@ -10,16 +10,14 @@ import pytest
 from typer.testing import CliRunner
 
 from db.sequence_package import open_package
+from db.synth_files import load_buildings, load_truth, write_synthetic_package
 from services.cli import app
 from workers.pipeline.synth import (
     SynthError,
     SynthOptions,
-    load_buildings,
-    load_truth,
     procedural_block,
     synthesize,
     thermal_scene_for_truth,
-    write_synthetic_package,
 )
 from workers.pipeline.synth.render import default_camera
 

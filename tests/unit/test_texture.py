@@ -7,12 +7,13 @@ import pytest
 
 from tests.unit.texture_scene import box_building, field, look_at, render
 from workers.pipeline.geometry.camera import Camera
-from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.manifest import MemoryFrames, Radiometry
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.plan import plan_units
 from workers.pipeline.texture.alignment import AlignOptions, align_partial
 from workers.pipeline.texture.fusion import FusionOptions, SurfaceTexture, local_resolution, sample_bilinear
-from workers.pipeline.units import ArrayFrameSource, UnitOptions, plan_units, texture_unit
+from workers.pipeline.units import UnitOptions, texture_unit
 
 CAM = Camera(320, 256, 300.0, 300.0, 159.5, 127.5, k1=-0.05)
 
@@ -105,7 +106,7 @@ def _errors(tex, polygon_id: str, edge: float = 0.15) -> tuple[float, float, flo
 
 def test_fused_texture_of_an_error_free_drive_matches_the_ground_truth():
     buildings, poses, frames = _drive()
-    (unit,) = plan_units(buildings, CAM, poses, ArrayFrameSource(frames), Radiometry())
+    (unit,) = plan_units(buildings, CAM, poses, MemoryFrames(frames), Radiometry())
     rc = RayCaster(build_scene_mesh(buildings))
     tex = texture_unit(unit, dict(zip(unit.frames, unit.poses, strict=True)), rc)
     rmse, misreg, coverage = _errors(tex, "B1_w0")
@@ -127,7 +128,7 @@ def test_alignment_pulls_frames_with_a_pose_error_onto_the_fused_texture():
     results = {}
     for align in (False, True):
         opts = UnitOptions(fusion=FusionOptions(align=align))
-        (unit,) = plan_units(buildings, CAM, poses, ArrayFrameSource(frames), Radiometry(), options=opts)
+        (unit,) = plan_units(buildings, CAM, poses, MemoryFrames(frames), Radiometry(), options=opts)
         rc = RayCaster(build_scene_mesh(buildings))
         tex = texture_unit(unit, dict(zip(unit.frames, unit.poses, strict=True)), rc)
         k = [p.id for p in tex.polygons].index("B1_w0")

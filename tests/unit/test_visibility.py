@@ -7,8 +7,9 @@ import pytest
 
 from tests.unit.texture_scene import box_building, field, look_at, render
 from workers.pipeline.geometry.camera import Camera
-from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.geometry.manifest import MemoryFrames, Radiometry
 from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.plan import PlanOptions, plan_units
 from workers.pipeline.texture.texel import TexelOptions, texel_grid
 from workers.pipeline.texture.visibility import (
     VisibilityOptions,
@@ -16,7 +17,7 @@ from workers.pipeline.texture.visibility import (
     buried_texels,
     project_texels,
 )
-from workers.pipeline.units import ArrayFrameSource, PlanOptions, plan_units, texture_unit
+from workers.pipeline.units import texture_unit
 
 CAM = Camera(200, 160, 180.0, 180.0, 99.5, 79.5, k1=-0.08)
 
@@ -79,7 +80,7 @@ def test_a_building_hidden_behind_another_gets_no_texels_from_the_frames_where_i
     frames = {i: render(CAM, p, [front, back]) for i, p in enumerate(poses)}
     plan = PlanOptions(ray_step_px=ray_step_px)
     units = plan_units(
-        [front, back], CAM, poses, ArrayFrameSource(frames), Radiometry(), targets=["BACK"], plan=plan
+        [front, back], CAM, poses, MemoryFrames(frames), Radiometry(), targets=["BACK"], plan=plan
     )
     (unit,) = units
     assert [o.id for o in unit.occluders] == ["FRONT"]

@@ -132,3 +132,11 @@ class BuildingResult:
     poses: tuple[FramePose, ...] = ()
     anomalies: tuple[Anomaly, ...] = ()
     timings_s: Mapping[str, float] = field(default_factory=dict)
+
+
+def output_radiometry(radiometry: Radiometry, frame_dtype: np.dtype) -> Radiometry:
+    """The radiometry of the output tiles: the sequence's, except for 8-bit frames, whose values
+    are kept as they are (scale 1, offset 0; `docs/results-format.md`)."""
+    if np.dtype(frame_dtype) == np.uint8:
+        return Radiometry(unit=radiometry.unit, scale=1.0, offset=0.0)
+    return radiometry

@@ -7,6 +7,7 @@ Out: frozen dataclasses. Units: metres, seconds, degrees. Positions are in the m
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
@@ -125,3 +126,18 @@ class FrameSource(Protocol):
     def load(self, index: int) -> np.ndarray:
         """Frame `index` as float32 physical values (radiometry applied), shape `(H, W)`."""
         ...
+
+
+@dataclass(frozen=True, eq=False)
+class MemoryFrames:
+    """An in-memory `FrameSource` (tests, benches, demos): frames already decoded.
+
+    Attributes:
+        frames: frame index -> `(H, W)` physical values (a mapping, or a sequence indexed 0..N-1).
+    """
+
+    frames: Mapping[int, np.ndarray] | Sequence[np.ndarray]
+
+    def load(self, index: int) -> np.ndarray:
+        """Frame `index` as float32 `(H, W)` (no copy when it is float32 already)."""
+        return np.asarray(self.frames[index], dtype=np.float32)

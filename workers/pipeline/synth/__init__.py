@@ -13,8 +13,9 @@ Public API (everything below is importable from `workers.pipeline.synth`):
   `true_mounting`, `time_delay_s`, `anomalies`, ...), `result.thermal` (`ThermalScene`),
   `result.mesh` (`SceneMesh`), `result.buildings` (the rendered ones), `result.renderer`,
   `result.ins` (`InsSimulation`: recorded vs true INS states, per-frame errors).
-- `write_synthetic_package(result, out_dir, truth_path=None) -> Path`; `load_truth(path)`;
-  `save_truth(truth, path)`; `load_buildings(truth)`; `thermal_scene_for_truth(truth, buildings)`.
+- `thermal_scene_for_truth(truth, buildings)`: the exact temperature field of a truth's scene.
+  Its files (`write_synthetic_package(result, out_dir, truth_path=None) -> Path`,
+  `load_truth(path)`, `save_truth(truth, path)`, `load_buildings(truth)`) are in `db.synth_files`.
 - `ThermalScene(buildings, polygon_ids=None, seed=0, options=ThermalOptions())`:
   `temperature(points (N,3), polygon_index (N,)) -> (N,) float32 K`,
   `surface_temperature(polygon_id_or_index, points (N,3)) -> (N,) K`,
@@ -33,22 +34,14 @@ Typical test use::
 """
 
 from workers.pipeline.synth.anomaly import Anomaly
-from workers.pipeline.synth.common import SynthError
+from workers.pipeline.synth.common import BUNDLED_MODEL, SynthError
 from workers.pipeline.synth.errors import ErrorOptions, InsSimulation, simulate_ins
-from workers.pipeline.synth.io import (
-    BUNDLED_MODEL,
-    load_buildings,
-    load_truth,
-    save_truth,
-    thermal_scene_for_truth,
-    write_synthetic_package,
-)
 from workers.pipeline.synth.procedural import gable_house, procedural_block
 from workers.pipeline.synth.render import GROUND, RADIOMETRY, SKY, Renderer, SensorOptions, default_camera
 from workers.pipeline.synth.scene import SynthFrames, SynthOptions, SynthResult, synthesize
 from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
 from workers.pipeline.synth.trajectory import DriveOptions, FlightOptions, PathTrajectory
-from workers.pipeline.synth.truth import SynthTruth
+from workers.pipeline.synth.truth import SynthTruth, thermal_scene_for_truth
 
 __all__ = [
     "BUNDLED_MODEL",
@@ -72,12 +65,8 @@ __all__ = [
     "ThermalScene",
     "default_camera",
     "gable_house",
-    "load_buildings",
-    "load_truth",
     "procedural_block",
-    "save_truth",
     "simulate_ins",
     "synthesize",
     "thermal_scene_for_truth",
-    "write_synthetic_package",
 ]

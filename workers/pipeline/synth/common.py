@@ -7,6 +7,7 @@ changing one part of a scene (e.g. the trajectory) never changes another (e.g. t
 from __future__ import annotations
 
 import zlib
+from pathlib import Path
 
 import numpy as np
 
@@ -22,3 +23,7 @@ def rng_for(seed: int, stream: str, *extra: int) -> np.random.Generator:
     """
     key = [int(seed) & 0xFFFFFFFF, zlib.crc32(stream.encode()), *(int(e) & 0xFFFFFFFF for e in extra)]
     return np.random.default_rng(np.random.SeedSequence(key))
+
+
+#: The real model bundled with the package (Berlin open data, see `data/README.md`).
+BUNDLED_MODEL = Path(__file__).resolve().parent / "data" / "berlin-61-buildings-citygml1-lod2.gml"

@@ -6,7 +6,7 @@ mounting), the frames as a lazy `SynthFrames` (uint16 DN on indexing, float32 ke
 `load`, rendered on demand, identical every time), the `SynthTruth` (true poses, mounting, delay,
 anomalies) and the `ThermalScene` (true temperature of any surface point).
 
-Pure computation; writing a package and the truth file is `synth.io.write_synthetic_package`.
+Pure computation; writing a package and the truth file is `db.synth_files.write_synthetic_package`.
 """
 
 from __future__ import annotations

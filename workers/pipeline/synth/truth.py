@@ -8,17 +8,20 @@ In: what `synthesize` knows (true poses, mounting, delay, anomalies, options). O
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
+from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.geometry.manifest import Mounting
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.options import OptionsError, options_from_dict
 from workers.pipeline.synth.anomaly import Anomaly
 from workers.pipeline.synth.common import SynthError
 from workers.pipeline.synth.render import SensorOptions
-from workers.pipeline.synth.thermal import ThermalOptions
+from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
 
 TRUTH_FORMAT = "citytherm-synth-truth/1"
 
@@ -37,15 +40,6 @@ def _mounting_from_dict(d: dict[str, Any]) -> Mounting:
         np.asarray(d["boresight_deg"], float).reshape(3),
         np.asarray(d["lever_arm_m"], float).reshape(3),
     )
-
-
-def _options_from_dict(cls: type, d: dict[str, Any] | None) -> Any:
-    """Rebuild a frozen options dataclass from its `asdict` form (lists -> tuples)."""
-    if not d:
-        return cls()
-    names = {f.name for f in fields(cls)}
-    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names}
-    return cls(**kw)
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,10 +151,18 @@ class SynthTruth:
                 position_error=np.array([f["position_error_m"] for f in frames], float).reshape(-1, 3),
                 attitude_error=np.array([f["attitude_error_deg"] for f in frames], float).reshape(-1, 3),
                 anomalies=tuple(Anomaly.from_dict(a) for a in d.get("anomalies", [])),
-                thermal=_options_from_dict(ThermalOptions, d.get("thermal")),
-                sensor=_options_from_dict(SensorOptions, d.get("sensor")),
+                thermal=options_from_dict(ThermalOptions, d.get("thermal"), strict=False),
+                sensor=options_from_dict(SensorOptions, d.get("sensor"), strict=False),
                 errors=dict(d.get("errors") or {}),
                 package=d.get("package"),
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OptionsError) as exc:
             raise SynthError(f"truth: missing or bad field ({exc})") from exc
+
+
+def thermal_scene_for_truth(
+    truth: SynthTruth, buildings: Sequence[Building], polygon_ids: Sequence[str] | None = None
+) -> ThermalScene:
+    """The temperature field that rendered the truth's frames, for `buildings` (any subset of
+    the scene: a building's field depends only on the seed and itself)."""
+    return ThermalScene(buildings, polygon_ids, seed=truth.seed, options=truth.thermal)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from services.results_read import iter_surface_textures
+from db.results_folder.read import iter_surface_textures
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.synth import SynthResult
 from workers.pipeline.texture.quality import summarize, surface_errors, truth_raster, visible_texels

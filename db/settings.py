@@ -1,7 +1,9 @@
 """Configuration: one typed settings object from environment variables (prefix `CITYTHERM_`).
 
-Created once by the entry point (CLI command, API app factory, Celery app) and passed in; never
-read at import time. Defaults work on one machine with PostgreSQL on 5432 and Redis on 6379.
+It lives at the bottom of the service layers (`db/`), so that every entry point (CLI command,
+API app factory, Celery app) reads it without importing upward. Created once by the entry point
+and passed in; never read at import time. Defaults work on one machine with PostgreSQL on 5432
+and Redis on 6379.
 """
 
 from __future__ import annotations

@@ -21,7 +21,9 @@ from db.citygml.writer import write_citygml
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture
 from workers.pipeline.geometry.manifest import Radiometry, SequenceManifest
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.options import options_to_dict
 from workers.pipeline.results import BuildingResult, TextureTile
+from workers.pipeline.texture.texel import TexelOptions
 
 ORIENTATION_FORMAT = "citytherm-orientation/1"
 REPORT_FORMAT = "citytherm-report/1"
@@ -52,6 +54,15 @@ def write_json(path: Path, data: Any) -> None:
         path.write_text(json.dumps(_clean(data), indent=1, allow_nan=False) + "\n", encoding="utf-8")
     except OSError as exc:
         raise ResultsWriteError(f"{path}: {exc}") from exc
+
+
+def anomalies_document(features: Sequence[Mapping[str, Any]], srs_name: str | None) -> dict[str, Any]:
+    """The `anomalies.geojson` document: a FeatureCollection of 3D polygons in the model CRS,
+    named by a `crs` member when the CRS is known (`docs/results-format.md`)."""
+    doc: dict[str, Any] = {"type": "FeatureCollection", "features": list(features)}
+    if srs_name:
+        doc["crs"] = {"type": "name", "properties": {"name": srs_name}}
+    return doc
 
 
 def write_tile(out_dir: Path, tile: TextureTile) -> Path:
@@ -229,7 +240,7 @@ def write_results_folder(
     theme: str,
     mounting: Mapping[str, Any] | None = None,
     calibration: Mapping[str, Any] | None = None,
-    resolution_px_per_m: float,
+    texel: TexelOptions,
     display: bool = True,
     frames_of: Mapping[str, int] | None = None,
     timings_s: dict[str, float] | None = None,
@@ -237,7 +248,7 @@ def write_results_folder(
     progress: Callable[[int, int], None] | None = None,
     write_time_offset_s: float = 0.0,
     started: float | None = None,
-) -> None:
+) -> dict[str, Any]:
     """Write a whole results folder (`spec/results-format.md`) from building results: the
     in-process run and the service (results loaded from the database) share it.
 
@@ -246,7 +257,8 @@ def write_results_folder(
     the report, `job` extra report fields; `timings_s` gets the `write` stage time.
     `priors` are the manifest-only priors; `mounting` the estimated mounting for
     `orientation.json` (None: the manifest's, delay 0) and `calibration` the report's
-    `calibration` block (None: `{"run": false}`).
+    `calibration` block (None: `{"run": false}`). `texel` (the units' texel-grid options) goes
+    into the report whole, so that readers lay the same grids. Returns the `report.json` document.
     """
     t0 = started if started is not None else time.perf_counter()
     out = Path(out_dir)
@@ -281,7 +293,8 @@ def write_results_folder(
     doc: dict[str, Any] = {
         "format": REPORT_FORMAT,
         "theme": theme,
-        "resolution_px_per_m": resolution_px_per_m,
+        "resolution_px_per_m": texel.resolution_px_per_m,
+        "texel": options_to_dict(texel),
         "frames": len(manifest.frames),
         "buildings_processed": len(results),
         "buildings_textured": sum(1 for r in results if r.appearance is not None),
@@ -298,3 +311,4 @@ def write_results_folder(
     }
     write_json(out / "report.json", doc)
     step(4, 4)
+    return doc

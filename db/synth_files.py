@@ -1,31 +1,29 @@
-"""File edges of the synthetic scene generator: write a package and its truth, read them back.
+"""Files of the synthetic scene generator (`workers.pipeline.synth`): a package and its truth.
 
 In: a `SynthResult`, paths. Out: a sequence package folder (via `db.sequence_package.
 write_package`: `sequence.json`, 16-bit frames, `imu.csv`, optional `gcps.json`) and the truth
-JSON written next to (not inside) it; `load_truth` reads a truth file back; `load_buildings`
-reads the CityGML model a truth names (or rebuilds the procedural block);
-`thermal_scene_for_truth` rebuilds the exact temperature field of a truth's scene.
+JSON (`docs/synth-truth.md`) written next to (not inside) it; `load_truth` reads a truth file
+back; `load_buildings` reads the CityGML model a truth names (or rebuilds the procedural block).
+The generator itself is pure; its files live here, with the other file formats.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from db.citygml.reader import read_model
+from db.sequence_package import write_package
 from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.synth.common import SynthError
 from workers.pipeline.synth.procedural import procedural_block
 from workers.pipeline.synth.scene import SynthResult
-from workers.pipeline.synth.thermal import ThermalScene
 from workers.pipeline.synth.truth import SynthTruth
-
-#: The real model bundled with the package (Berlin open data, see `data/README.md`).
-BUNDLED_MODEL = Path(__file__).resolve().parent / "data" / "berlin-61-buildings-citygml1-lod2.gml"
 
 
 def save_truth(truth: SynthTruth, path: str | os.PathLike[str]) -> Path:
@@ -59,8 +57,6 @@ def write_synthetic_package(
     `truth_path` (default: `<out_dir>.truth.json`, next to the package). Returns the package
     folder. The truth's `package` names the folder relative to the truth file. `frames`
     replaces `result.frames` as the source of the images (e.g. wrapped for a progress bar)."""
-    from db.sequence_package import write_package  # file I/O lives in db/
-
     out = Path(out_dir)
     tp = Path(truth_path) if truth_path is not None else out.with_name(out.name + ".truth.json")
     if tp.resolve().is_relative_to(out.resolve()):
@@ -80,19 +76,9 @@ def load_buildings(truth: SynthTruth, model_path: str | os.PathLike[str] | None 
         path = model_path or truth.model_path
         if not path:
             raise SynthError("truth: no model_path and no procedural block to rebuild the buildings from")
-        from db.citygml.reader import read_model
-
         _, blds = read_model(path)
     index = {b.id: b for b in blds}
     missing = [i for i in truth.buildings if i not in index]
     if missing:
         raise SynthError(f"truth: building {missing[0]!r} is not in the model")
     return [index[i] for i in truth.buildings]
-
-
-def thermal_scene_for_truth(
-    truth: SynthTruth, buildings: Sequence[Building], polygon_ids: Sequence[str] | None = None
-) -> ThermalScene:
-    """The temperature field that rendered the truth's frames, for `buildings` (any subset of
-    the scene: a building's field depends only on the seed and itself)."""
-    return ThermalScene(buildings, polygon_ids, seed=truth.seed, options=truth.thermal)

@@ -1,10 +1,10 @@
 """Reading a results folder back: each textured polygon's texture on its texel grid.
 
 In: a results folder written by `citytherm run` (`textured.gml`, `textures/*.png`,
-`report.json`). Out: per textured polygon its `TexelGrid` (recomputed from the polygon with the
-job's resolution: grids are deterministic) and its float32 texture `(H, W)` (NaN = DN 0), cut
-out of the atlas tile where the texture coordinates place it. Used by the demo, the bench and
-tests to compare results with a synthetic scene's ground truth.
+`report.json`). Out: per textured polygon its `TexelGrid` (recomputed from the polygon with
+the texel options the job wrote into `report.json`: grids are deterministic) and its float32
+texture `(H, W)` (NaN = DN 0), cut out of the atlas tile where the texture coordinates place it.
+Used by the demo, the bench and tests to compare results with a synthetic scene's ground truth.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import numpy as np
 from db.citygml.reader import read_model
 from workers.pipeline.geometry.citymodel import Building, ParameterizedTexture, Polygon
 from workers.pipeline.geometry.manifest import Radiometry
+from workers.pipeline.options import options_from_dict
 from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
 
 
@@ -46,12 +47,24 @@ def _tile(out_dir: Path, uri: str, cache: dict[str, np.ndarray]) -> np.ndarray:
     return cache[uri]
 
 
+def texel_options(report: dict) -> TexelOptions:
+    """The texel-grid options a job wrote into its `report.json` (`texel`; older reports give
+    only `resolution_px_per_m`, the other options were the defaults then)."""
+    try:
+        if "texel" in report:
+            return options_from_dict(TexelOptions, report["texel"])
+        return TexelOptions(resolution_px_per_m=float(report["resolution_px_per_m"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ResultsReadError(f"report.json: texel options: {exc}") from exc
+
+
 def iter_surface_textures(
     out_dir: str | Path, radiometry: Radiometry, theme: str | None = None
 ) -> Iterator[SurfaceTextureFile]:
     """Yield every textured polygon of the results folder `out_dir` with its texture.
 
-    `theme` defaults to the job's (`report.json`); the resolution always comes from the report.
+    `theme` defaults to the job's (`report.json`); the texel grids are laid with the options the
+    report gives (`texel_options`), never with defaults.
     """
     out = Path(out_dir)
     try:
@@ -59,7 +72,7 @@ def iter_surface_textures(
     except (OSError, ValueError) as exc:
         raise ResultsReadError(f"{out / 'report.json'}: {exc}") from exc
     theme = theme or rep["theme"]
-    opts = TexelOptions(resolution_px_per_m=float(rep["resolution_px_per_m"]))
+    opts = texel_options(rep)
     _, buildings = read_model(out / "textured.gml")
     cache: dict[str, np.ndarray] = {}
     for b in buildings:

@@ -1,0 +1,457 @@
+"""The stages of a texturing job, each a function over plain, picklable data (`DESIGN.md`).
+
+`citytherm run` calls them in one process (`workers.run.run_job`); the service runs ingest +
+calibrate + orient as one task per sequence, one task per building unit, then finish.
+
+- `ingest(city_gml, package_dir, options) -> Ingested`: read the package (a folder: archives are
+  extracted by the caller) and georeference the prior poses; stream the model, keeping the
+  buildings within reach of the cameras.
+- `calibrate(ingested, options) -> Calibrated`: with refinement, boresight, GNSS offset, lever arm
+  and time delay once per sequence against those buildings
+  (`orientation.calibration.calibrate_sequence`). An accepted calibration gives the units
+  calibrated priors and a-priori accuracy; `orientation.json` keeps the manifest-only priors.
+- `orient(ingested, calibrated, options) -> Oriented`: close-range sequences after an accepted
+  calibration: every frame's pose refined in blocks of feature tracks and a bundle adjustment
+  with those buildings (`orientation.sequence.orient_sequence`); the units refine from it.
+- `plan(ingested, calibrated, oriented, options) -> Planned`: which frames see which building
+  (`plan.plan_units`): one `BuildingUnit` per building.
+- `run_unit(unit) -> BuildingResult | UnitFailure`: one building (`units.run_building_unit`); a
+  unit that raises is reported, not fatal.
+- `finish(out_dir, ...)`: the results folder (`db.results_folder.write`).
+
+Options: `RunOptions`, one frozen dataclass that round-trips through JSON (`to_dict` /
+`from_dict`) so that the service stores it with the job. The texel resolution, theme and
+refinement live in `RunOptions.unit` only.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from db.citygml.reader import iter_buildings, read_header
+from db.results_folder.write import write_results_folder
+from db.sequence_package import open_package
+from workers.pipeline.geometry.citymodel import Building, ModelHeader
+from workers.pipeline.geometry.georef import prior_poses
+from workers.pipeline.geometry.manifest import Accuracy, FrameSource, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
+from workers.pipeline.options import options_from_dict, options_to_dict
+from workers.pipeline.orientation.building import CoregisterOptions, calibrated_options
+from workers.pipeline.orientation.calibration import (
+    SequenceCalibration,
+    apply_calibration,
+    calibrate_sequence,
+    calibrated_accuracy,
+)
+from workers.pipeline.orientation.mounting import calibration_report, mounting_document
+from workers.pipeline.orientation.sequence import SEQUENCE_PLATFORMS, SequenceOrientation, orient_sequence
+from workers.pipeline.plan import PlanOptions, near_buildings, plan_units, resolution_warning
+from workers.pipeline.results import BuildingResult, output_radiometry
+from workers.pipeline.texture.texel import TexelOptions
+from workers.pipeline.units import BuildingUnit, Refiner, UnitOptions, run_building_unit
+
+#: progress callback: (stage, done, total); called with done == 0 when a stage starts.
+Progress = Callable[[str, int, int], None]
+STAGES = ("ingest", "calibrate", "orient", "plan", "units", "write")
+
+
+class RunError(ValueError):
+    """A job that cannot run as asked (names the file or option)."""
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Options of one texturing job (`citytherm run`, a service job).
+
+    Attributes:
+        unit: the building units' options: texel resolution (`unit.texel.resolution_px_per_m`),
+            theme, refinement (`unit.refine`, None: keep the GNSS/INS poses) and the texture
+            stages. The one home of those values: read them through the properties below.
+        plan: planning options.
+        calibrate: with refinement, calibrate the sequence (mounting, GNSS offset, time delay)
+            before the units, which then refine from the calibrated priors.
+        orient: with refinement and an accepted calibration, orient close-range sequences
+            (drives) in blocks (feature tracks, bundle adjustment with the model) before the
+            units, which then refine from those poses.
+        buildings: ids of the top-level buildings to texture (None: all the sequence sees).
+        workers: processes for the building units in one process (`citytherm run`; 1: in this
+            process).
+        display: also write the 8-bit colour-mapped `<theme>-display` appearance.
+    """
+
+    unit: UnitOptions = field(default_factory=UnitOptions)
+    plan: PlanOptions = field(default_factory=PlanOptions)
+    calibrate: bool = True
+    orient: bool = True
+    buildings: tuple[str, ...] | None = None
+    workers: int = 1
+    display: bool = True
+
+    @classmethod
+    def build(
+        cls,
+        *,
+        resolution_px_per_m: float | None = None,
+        theme: str | None = None,
+        refine: bool | None = None,
+        **fields: Any,
+    ) -> RunOptions:
+        """Options from the job's few headline values (as the command line gives them); the
+        others keep their defaults or come in `fields`. `refine=True` uses the default
+        refinement options, False none."""
+        unit: UnitOptions = fields.pop("unit", UnitOptions())
+        if resolution_px_per_m is not None:
+            unit = replace(unit, texel=replace(unit.texel, resolution_px_per_m=float(resolution_px_per_m)))
+        if theme is not None:
+            unit = replace(unit, theme=theme)
+        if refine is not None:
+            unit = replace(unit, refine=(unit.refine or CoregisterOptions()) if refine else None)
+        return cls(unit=unit, **fields)
+
+    @property
+    def refine(self) -> bool:
+        """True when the units refine their poses (and the sequence stages may run)."""
+        return self.unit.refine is not None
+
+    @property
+    def theme(self) -> str:
+        """Appearance theme of the textures."""
+        return self.unit.theme
+
+    @property
+    def resolution_px_per_m(self) -> float:
+        """Texels per metre on every surface."""
+        return self.unit.texel.resolution_px_per_m
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (`workers.pipeline.options.options_to_dict`)."""
+        return options_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> RunOptions:
+        """Rebuild from `to_dict`'s form; unknown keys or wrong types raise `OptionsError`."""
+        return options_from_dict(cls, data)
+
+
+@dataclass(frozen=True, eq=False)
+class Ingested:
+    """What the ingest stage read: the model header, the package, the prior poses and the
+    buildings within reach of the cameras.
+
+    Attributes:
+        city_gml: the city model file.
+        package_dir: the package folder (`sequence.json` in it).
+        header: the model's CRS and name.
+        manifest: the sequence manifest (positions in the manifest's CRS).
+        frames: the package's frames (`PackageFrames`: picklable, loads by path).
+        priors: manifest-only prior camera pose per frame, manifest order (world = model CRS).
+        buildings: the top-level buildings within reach of the cameras, model order.
+        n_model_buildings: top-level buildings in the whole model.
+        radiometry: the output tiles' radiometry (`results.output_radiometry`).
+    """
+
+    city_gml: Path
+    package_dir: Path
+    header: ModelHeader
+    manifest: SequenceManifest
+    frames: FrameSource
+    priors: tuple[Pose, ...]
+    buildings: tuple[Building, ...]
+    n_model_buildings: int
+    radiometry: Radiometry
+
+    @property
+    def frame_indices(self) -> list[int]:
+        """The frames' indices, manifest order."""
+        return [f.index for f in self.manifest.frames]
+
+    @property
+    def times(self) -> list[float]:
+        """The frames' time stamps in seconds, manifest order."""
+        return [float(f.time) for f in self.manifest.frames]
+
+
+@dataclass(frozen=True, eq=False)
+class Calibrated:
+    """The calibrate stage's result.
+
+    Attributes:
+        calibration: the sequence calibration (None: the stage did not run).
+        priors: the poses the units start from, manifest order (`apply_calibration`: the
+            manifest-only priors unless the calibration was accepted).
+        accuracy: their a-priori accuracy (`calibrated_accuracy`; the manifest's unless accepted).
+    """
+
+    calibration: SequenceCalibration | None
+    priors: tuple[Pose, ...]
+    accuracy: Accuracy | None
+
+    @property
+    def accepted(self) -> bool:
+        """True when a calibration ran and was accepted."""
+        return self.calibration is not None and self.calibration.accepted
+
+
+@dataclass(frozen=True, eq=False)
+class Oriented:
+    """The orient stage's result: the sequence orientation (None when it did not run or failed)
+    and the `report.json` `sequence_orientation` block."""
+
+    orientation: SequenceOrientation | None
+    report: dict[str, Any]
+
+
+@dataclass(frozen=True, eq=False)
+class Planned:
+    """The plan stage's result: one unit per building seen, and a resolution warning."""
+
+    units: tuple[BuildingUnit, ...]
+    warning: str | None = None
+
+
+@dataclass(frozen=True)
+class UnitFailure:
+    """A building unit that raised: the job goes on without it and reports it."""
+
+    building_id: str
+    error: str
+
+
+def no_progress(stage: str, done: int, total: int) -> None:
+    """The default progress callback: nothing."""
+
+
+def ingest(
+    city_gml: str | Path, package_dir: str | Path, options: RunOptions, progress: Progress = no_progress
+) -> Ingested:
+    """The ingest stage (see the module docstring). Raises `RunError` naming the file or option,
+    `PackageError` / `CityGMLError` for bad input."""
+    if options.workers < 1:
+        raise RunError(f"workers must be >= 1, got {options.workers}")
+    TexelOptions(resolution_px_per_m=options.resolution_px_per_m)  # validates the resolution
+    city_gml = Path(city_gml)
+    progress("ingest", 0, 3)
+    if not city_gml.is_file():
+        raise RunError(f"{city_gml}: city model not found")
+    header = read_header(city_gml)
+    progress("ingest", 1, 3)
+    given = Path(package_dir).resolve()
+    with open_package(package_dir) as pkg:
+        if pkg.root.resolve() not in (given, given.parent):
+            raise RunError(f"{package_dir}: ingest takes a package folder; extract the archive first")
+        manifest, frames = pkg.manifest, pkg.frames
+        raw_dtype = frames.raw(0).dtype if manifest.frames else np.dtype(np.uint16)
+    priors = prior_poses(manifest, header.srs_name)
+    progress("ingest", 2, 3)
+    reach = min(options.plan.max_distance_m, options.unit.visibility.max_distance_m)
+    buildings, ids = near_buildings(iter_buildings(city_gml), priors, reach)
+    if options.buildings is not None:
+        missing = [b for b in options.buildings if b not in ids]
+        if missing:
+            raise RunError(f"buildings: not in {city_gml}: {', '.join(missing)}")
+    progress("ingest", 3, 3)
+    return Ingested(
+        city_gml=city_gml,
+        package_dir=pkg.root,
+        header=header,
+        manifest=manifest,
+        frames=frames,
+        priors=tuple(priors),
+        buildings=tuple(buildings),
+        n_model_buildings=len(ids),
+        radiometry=output_radiometry(manifest.radiometry, raw_dtype),
+    )
+
+
+def scene_caster(ingested: Ingested) -> RayCaster | None:
+    """A ray caster over the buildings near the cameras (None when there are none); the calibrate
+    and orient stages of one process share it."""
+    return RayCaster(build_scene_mesh(ingested.buildings)) if ingested.buildings else None
+
+
+def calibrate(ingested: Ingested, options: RunOptions, caster: RayCaster | None = None) -> Calibrated:
+    """The calibrate stage: `calibrate_sequence` over every frame against the buildings near the
+    cameras (`caster`: a ray caster over them, built here when None).
+
+    Runs only with refinement and `options.calibrate`; otherwise the units start from the
+    manifest-only priors. A calibration that raises is returned as rejected, its `reason`
+    naming the error: one sequence the method cannot handle must not sink the job.
+    """
+    m = ingested.manifest
+    if not (options.refine and options.calibrate):
+        return Calibrated(None, ingested.priors, m.accuracy)
+    frames, times = ingested.frame_indices, ingested.times
+    if not ingested.buildings:
+        cal = SequenceCalibration(theta=np.zeros(10), reason="no buildings near the cameras")
+    else:
+        try:
+            caster = caster if caster is not None else scene_caster(ingested)
+            cal = calibrate_sequence(
+                m.camera,
+                caster,
+                frames,
+                ingested.frames,
+                dict(zip(frames, ingested.priors, strict=True)),
+                dict(zip(frames, times, strict=True)),
+                m.accuracy,
+            )
+        except Exception as exc:  # reported in report.json: the job goes on
+            cal = SequenceCalibration(theta=np.zeros(10), reason=f"failed: {type(exc).__name__}: {exc}")
+    calibrated = apply_calibration(list(ingested.priors), times, cal)
+    return Calibrated(cal, tuple(calibrated), calibrated_accuracy(cal, prior=m.accuracy))
+
+
+def orients(options: RunOptions, calibrated: Calibrated, platform: str) -> bool:
+    """True when the orient stage runs: refinement and `options.orient` on, an accepted
+    calibration, a close-range platform (`orientation.sequence.SEQUENCE_PLATFORMS`)."""
+    return options.refine and options.orient and calibrated.accepted and platform in SEQUENCE_PLATFORMS
+
+
+def orient(
+    ingested: Ingested,
+    calibrated: Calibrated,
+    options: RunOptions,
+    progress: Progress = no_progress,
+    caster: RayCaster | None = None,
+) -> Oriented:
+    """The orient stage: `orient_sequence` over every frame, from the calibrated priors with their
+    accuracy, against the buildings near the cameras (`caster`, built here when None).
+
+    An orientation that raises is reported, not fatal: the units then refine from the priors.
+    """
+    if not orients(options, calibrated, ingested.manifest.platform):
+        return Oriented(None, {"run": False})
+    if not ingested.buildings:
+        return Oriented(None, {"run": False, "reason": "no buildings near the cameras"})
+    frames = ingested.frame_indices
+    times = dict(zip(frames, ingested.times, strict=True))
+    try:
+        caster = caster if caster is not None else scene_caster(ingested)
+        prior = dict(zip(frames, calibrated.priors, strict=True))
+        so = orient_sequence(
+            ingested.manifest.camera, caster, frames, ingested.frames, prior, times, calibrated.accuracy,
+            progress=lambda done, total: progress("orient", done, total),
+        )
+    except Exception as exc:  # reported in report.json: the job goes on
+        return Oriented(None, {"run": False, "reason": f"failed: {type(exc).__name__}: {exc}"})
+    return Oriented(so, {"run": True, **so.to_dict()})
+
+
+def unit_options(options: RunOptions, calibrated: Calibrated) -> UnitOptions:
+    """The units' options: after an accepted calibration the common error is removed, so the
+    refinement skips its wide searches (`calibrated_options`)."""
+    unit = options.unit
+    if calibrated.accepted and unit.refine is not None:
+        unit = replace(unit, refine=calibrated_options(unit.refine))
+    return unit
+
+
+def plan(ingested: Ingested, calibrated: Calibrated, oriented: Oriented, options: RunOptions) -> Planned:
+    """The plan stage: one building unit per building the sequence sees (of `options.buildings`
+    when given), starting from the calibrated priors and the sequence orientation."""
+    m = ingested.manifest
+    targets = None
+    if options.buildings is not None:
+        targets = [b.id for b in ingested.buildings if b.id in options.buildings]
+    uopts = unit_options(options, calibrated)
+    units = plan_units(
+        ingested.buildings,
+        m.camera,
+        calibrated.priors,
+        ingested.frames,
+        ingested.radiometry,
+        times=ingested.times,
+        frame_indices=ingested.frame_indices,
+        accuracy=calibrated.accuracy,
+        options=uopts,
+        plan=options.plan,
+        targets=targets,
+        sequence=oriented.orientation,
+    )
+    return Planned(tuple(units), resolution_warning(units, m.camera, uopts))
+
+
+def run_unit(unit: BuildingUnit, refiner: Refiner | None = None) -> BuildingResult | UnitFailure:
+    """`run_building_unit`, with any exception turned into a `UnitFailure` (picklable)."""
+    try:
+        if refiner is None:
+            return run_building_unit(unit)
+        return run_building_unit(unit, refiner)
+    except Exception as exc:  # one bad building must not sink the job
+        return UnitFailure(unit.building.id, f"{type(exc).__name__}: {exc}")
+
+
+def calibration_documents(
+    calibrated: Calibrated, mounting: Mounting, seconds: float | None
+) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """`orientation.json` `mounting` (None: the manifest's `mounting`, no delay) and `report.json`
+    `calibration` (`{"run": false}` when the stage did not run; `seconds` its wall time)."""
+    cal = calibrated.calibration
+    if cal is None:
+        return None, {"run": False}
+    return mounting_document(mounting, cal), calibration_report(cal, mounting, seconds)
+
+
+def finish(
+    out_dir: str | Path,
+    ingested: Ingested,
+    calibrated: Calibrated,
+    oriented: Oriented,
+    planned: Planned,
+    results: Sequence[BuildingResult],
+    failures: Sequence[UnitFailure],
+    options: RunOptions,
+    timings: dict[str, float],
+    progress: Progress = no_progress,
+    *,
+    package: str | Path | None = None,
+    write_time_offset_s: float = 0.0,
+) -> dict[str, Any]:
+    """The finish stage: the results folder `out_dir` (tiles already written are kept: results
+    whose tiles have empty pixels; `db.results_folder.write.write_results_folder`) with the
+    job's figures in `report.json` (`package`: the package as the user named it, default its
+    folder). `timings` gets the `write` stage time. Returns the `report.json` document."""
+    t0 = time.perf_counter()
+    frames_of = {u.building.id: len(u.frames) for u in planned.units}
+    mounting, calibration = calibration_documents(
+        calibrated, ingested.manifest.mounting, timings.get("calibrate")
+    )
+    job = {
+        "city_model": str(ingested.city_gml),
+        "package": str(package if package is not None else ingested.package_dir),
+        "refine": options.refine,
+        "calibrate": calibrated.calibration is not None,
+        "sequence_orientation": oriented.report,
+        "workers": options.workers,
+        "buildings_in_model": ingested.n_model_buildings,
+        "buildings_near_the_cameras": len(ingested.buildings),
+        "failed": [{"id": f.building_id, "error": f.error} for f in failures],
+        "warnings": [planned.warning] if planned.warning else [],
+        "options": options.to_dict(),
+    }
+    return write_results_folder(
+        out_dir,
+        buildings=ingested.buildings,
+        results=results,
+        manifest=ingested.manifest,
+        priors=ingested.priors,
+        mounting=mounting,
+        calibration=calibration,
+        srs_name=ingested.header.srs_name,
+        theme=options.theme,
+        texel=options.unit.texel,
+        display=options.display,
+        frames_of=frames_of,
+        timings_s=timings,
+        job=job,
+        progress=lambda done, total: progress("write", done, total),
+        write_time_offset_s=write_time_offset_s,
+        started=t0,
+    )
