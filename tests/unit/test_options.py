@@ -57,7 +57,8 @@ def test_run_options_round_trip_with_values_that_differ_from_the_defaults() -> N
     opts = RunOptions.build(
         resolution_px_per_m=4.5, theme="winter", refine=True, buildings=("A", "B"), workers=3, calibrate=False
     )
-    opts = dataclasses.replace(opts, unit=dataclasses.replace(opts.unit, refine=calibrated_options(CoregisterOptions())))
+    calibrated = dataclasses.replace(opts.unit, refine=calibrated_options(CoregisterOptions()))
+    opts = dataclasses.replace(opts, unit=calibrated)
     back = RunOptions.from_dict(json.loads(json.dumps(opts.to_dict())))
     assert back == opts
     assert back.resolution_px_per_m == 4.5 and back.theme == "winter" and back.refine
