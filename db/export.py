@@ -1,5 +1,5 @@
 """Export a city model (or part of it) from the database as CityGML 2.0 plus texture files, in the
-results format (`spec/results-format.md`: `textured.gml`, `textures/*.png`).
+results format (`docs/results-format.md`: `textured.gml`, `textures/*.png`).
 
 In: a database (Engine, sessionmaker or URL), a model (name or id), optionally a theme, a job and a
 2D bbox in the model CRS. Out: `OUT/textured.gml` written by `db.citygml.writer.write_citygml`

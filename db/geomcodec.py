@@ -1,6 +1,6 @@
 """Geometry encoding between the domain dataclasses and PostGIS, vectorised over batches.
 
-In: `Polygon`s / `Building`s (`workers/pipeline/citymodel.py`), coordinates in the model CRS
+In: `Polygon`s / `Building`s (`workers/pipeline/geometry/citymodel.py`), coordinates in the model CRS
 (metres). Out: hex EWKB strings with the model SRID (what PostGIS parses from text input and
 COPY), plane figures per polygon, footprints and 3DCityDB-style envelopes; and back: WKB of a
 `POLYGON Z` -> rings `(N, 3)` float64, bit-exact (EWKB carries IEEE doubles unchanged).

@@ -162,7 +162,7 @@ class Surface(Base):
 
 
 class Sequence(Base):
-    """A TIR image sequence package (`spec/sequence-format.md`)."""
+    """A TIR image sequence package (`docs/sequence-format.md`)."""
 
     __tablename__ = "sequence"
     __table_args__ = (Index("ix_sequence_trajectory", "trajectory", postgresql_using="gist"),)

@@ -1,4 +1,4 @@
-"""Writing a job's results folder (`spec/results-format.md`): texture tiles, `textured.gml`,
+"""Writing a job's results folder (`docs/results-format.md`): texture tiles, `textured.gml`,
 `orientation.json`, `report.json`.
 
 In: `BuildingResult`s of the building units, the buildings, the prior poses and the manifest.
@@ -249,7 +249,7 @@ def write_results_folder(
     write_time_offset_s: float = 0.0,
     started: float | None = None,
 ) -> dict[str, Any]:
-    """Write a whole results folder (`spec/results-format.md`) from building results: the
+    """Write a whole results folder (`docs/results-format.md`) from building results: the
     in-process run and the service (results loaded from the database) share it.
 
     Tiles with pixels are written; tiles with an empty `dn` are taken as already written (the

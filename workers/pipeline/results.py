@@ -1,5 +1,5 @@
 """Result objects of one building unit: what a unit hands back, what the CLI writes as files
-(`spec/results-format.md`) and what the service stores in one database transaction.
+(`docs/results-format.md`) and what the service stores in one database transaction.
 
 In: produced by the texture/orientation stages. Out: plain, picklable frozen dataclasses.
 """

@@ -1,7 +1,7 @@
 """Synthetic TIR sequences with ground truth (`citytherm synth`).
 
 In: CityGML buildings (`citymodel.Building`, model CRS, metres) or a procedural block.
-Out: a sequence package (`spec/sequence-format.md`) rendered by ray casting, with a ground-truth
+Out: a sequence package (`docs/sequence-format.md`) rendered by ray casting, with a ground-truth
 file next to it (`docs/synth-truth.md`): true camera poses, true mounting and delay, anomalies.
 
 Public API (everything below is importable from `workers.pipeline.synth`):

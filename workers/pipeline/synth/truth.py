@@ -2,7 +2,7 @@
 `docs/synth-truth.md`.
 
 In: what `synthesize` knows (true poses, mounting, delay, anomalies, options). Out: a
-`SynthTruth` and its JSON form (`to_dict` / `from_dict`; files via `synth.io`). Poses are
+`SynthTruth` and its JSON form (`to_dict` / `from_dict`; files via `db.synth_files`). Poses are
 `R_wc` (camera to world, rows) and `C` (world, model CRS, metres).
 """
 

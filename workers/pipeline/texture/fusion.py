@@ -10,7 +10,7 @@ Fusion follows Hoegner & Stilla: frames are taken in recording order; per texel 
 with the best (smallest) local resolution wins; before a frame's partial texture is merged it is
 aligned to what has been fused so far by sub-texel phase correlation on the overlap (shift
 bounded, rejected when the correlation peak is weak or the overlap has no contrast, applied only
-when significant; `texalign`). Observations coarser than `max_texel_ratio` texel sizes or seen
+when significant; `alignment`). Observations coarser than `max_texel_ratio` texel sizes or seen
 beyond `max_view_angle_deg` are not used; blocks of texels a frame cannot improve are skipped
 before any projection. No 8-bit conversion happens anywhere on this path.
 """
