@@ -8,7 +8,6 @@ Out: files under the results folder. File I/O only; no numerical work beyond col
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -18,6 +17,7 @@ import cv2
 import numpy as np
 
 from db.citygml.writer import write_citygml
+from db.surface_checks import jsonable
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture
 from workers.pipeline.geometry.manifest import Radiometry, SequenceManifest
 from workers.pipeline.geometry.pose import Pose
@@ -33,25 +33,10 @@ class ResultsWriteError(OSError):
     """A results file could not be written (names the file)."""
 
 
-def _clean(x: Any) -> Any:
-    """JSON-safe copy: NaN/inf -> None, numpy scalars and arrays -> Python values."""
-    if isinstance(x, Mapping):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def write_json(path: Path, data: Any) -> None:
     """Write `data` as strict JSON (no NaN) to `path`."""
     try:
-        path.write_text(json.dumps(_clean(data), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        path.write_text(json.dumps(jsonable(data), indent=1, allow_nan=False) + "\n", encoding="utf-8")
     except OSError as exc:
         raise ResultsWriteError(f"{path}: {exc}") from exc
 
