@@ -121,10 +121,11 @@ class BuildingUnit:
             )
 
 
-def _refine(
-    unit: BuildingUnit, raycaster: RayCaster, refiner: Refiner
+def refine_unit(
+    unit: BuildingUnit, raycaster: RayCaster, refiner: Refiner = refine_building
 ) -> tuple[dict[int, Pose], tuple[FramePose, ...]]:
-    """Refine the unit's poses when its options ask for it.
+    """Refine the unit's poses when its options ask for it (`raycaster`: over the unit's scene,
+    `unit_raycaster`).
 
     Returns the poses to texture with (frame index -> pose) and the per-frame orientation records
     (empty when refinement is off; every frame at its prior when the refiner raised).
@@ -242,16 +243,20 @@ def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCa
     return UnitTextures(polygons=polygons, grids=grids, textures=textures, timings_s=timings, empty=empty)
 
 
+def unit_raycaster(unit: BuildingUnit) -> RayCaster:
+    """A ray caster over the unit's scene: its building and its occluders (world = model CRS)."""
+    return RayCaster(build_scene_mesh([unit.building, *unit.occluders]))
+
+
 def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) -> BuildingResult:
     """Run one building unit: refine its poses (unless `options.refine` is None), extract and
     fuse the textures of its surfaces, pack them into atlas tiles. Pure: reads frames through
     `unit.frame_source`, writes nothing."""
     t0 = time.perf_counter()
-    mesh = build_scene_mesh([unit.building, *unit.occluders])
-    raycaster = RayCaster(mesh)
+    raycaster = unit_raycaster(unit)
     t_scene = time.perf_counter() - t0
     t0 = time.perf_counter()
-    poses, records = _refine(unit, raycaster, refiner)
+    poses, records = refine_unit(unit, raycaster, refiner)
     t_orient = time.perf_counter() - t0
     tex = texture_unit(unit, poses, raycaster)
     t0 = time.perf_counter()
