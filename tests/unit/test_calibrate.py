@@ -1,5 +1,5 @@
-"""Sequence calibration (`workers.pipeline.orientation.calibration`) on a synthetic drive, and its conversion to
-the manifest's mounting terms (`workers.pipeline.orientation.mounting`)."""
+"""Sequence calibration (`workers.pipeline.orientation.calibration`) on a synthetic drive, and its
+conversion to the manifest's mounting terms (`workers.pipeline.orientation.mounting`)."""
 
 from __future__ import annotations
 
