@@ -21,9 +21,9 @@ from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.building import (
     CoregisterOptions,
     RefinedPose,
-    prior_information,
     refine_building,
 )
+from workers.pipeline.orientation.priors import prior_information
 from workers.pipeline.orientation.quality import efficiency, match_quality, point_quality
 
 B1 = box_building("B1", 0, 0, 20, 12, 9, ridge=4)

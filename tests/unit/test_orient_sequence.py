@@ -172,7 +172,7 @@ def test_the_bundle_fits_the_model_edges_without_ties(drive) -> None:
     """The edge observations of `bundle_adjust` alone (no tie points), on the drive's frames from
     priors with a common error: the common error goes, the edges end on their image edges."""
     from workers.pipeline.orientation.bundle import bundle_adjust
-    from workers.pipeline.orientation.neighbours import frame_noise_covariance
+    from workers.pipeline.orientation.priors import frame_noise_covariance
     from workers.pipeline.orientation.tracks import Tracks
     from workers.pipeline.orientation.wireframe import mesh_wireframe
 

@@ -49,7 +49,7 @@ from workers.pipeline.orientation.bundle import BundleOptions, BundleResult, bun
 from workers.pipeline.orientation.edge_observations import edge_support, frame_edges
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
-from workers.pipeline.orientation.neighbours import frame_noise_covariance
+from workers.pipeline.orientation.priors import PriorOptions, frame_noise_covariance
 from workers.pipeline.orientation.tracks import TrackOptions, Tracks, track_sequence
 from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 from workers.pipeline.results import RefinedPose
@@ -73,9 +73,6 @@ class BlockOptions:
 
     tracks: TrackOptions = field(default_factory=TrackOptions)
     bundle: BundleOptions = field(default_factory=BundleOptions)
-    # each frame's own deviation from the block's common prior error (white GNSS noise, vibration)
-    frame_sigma_deg: float = 0.3
-    frame_sigma_m: float = 0.3
     # floors of the common error's prior σ (see the module docstring)
     common_sigma_floor_m: float = 1.0
     common_sigma_floor_deg: float = 2.0
@@ -138,6 +135,7 @@ def adjust_block(
     fit_options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
+    prior_options: PriorOptions = PriorOptions(),
 ) -> tuple[BundleResult, Tracks]:
     """Tracks through `frames` and the bundle adjustment of the block against `scene_wf`, tracked
     and adjusted again when the ties fit worse than their σ (`retrack_sigma0`; module docstring).
@@ -153,16 +151,18 @@ def adjust_block(
         prior_info: `(6, 6)` information of the prior's common error on `δ` (rad⁻², m⁻²),
             floored at the common σ floors.
         options, fit_options, edge_options, feature_options: parameters.
+        prior_options: the per-frame deviation from the block's common error.
     """
     frames = list(frames)
-    white = np.linalg.inv(frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m))
+    white = np.linalg.inv(frame_noise_covariance(prior_options.frame_sigma_deg, prior_options.frame_sigma_m))
     frame_info = dict.fromkeys(frames, white)
     common_info = _floored(prior_info, options)
     poses = dict(start)
     for _ in range(2):
         tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks)
         res = bundle_adjust(camera, frames, images, poses, prior, frame_info, common_info, tracks, scene_wf,
-                            raycaster, options.bundle, fit_options, edge_options, feature_options)
+                            raycaster, options.bundle, fit_options, edge_options, feature_options,
+                            prior_options)
         poses = res.poses
         if res.sigma0 <= options.retrack_sigma0:
             break
@@ -183,6 +183,7 @@ def refine_block(
     fit_options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
+    prior_options: PriorOptions = PriorOptions(),
 ) -> tuple[dict[int, RefinedPose], BundleResult | None, str]:
     """Orient the building's `frames` as one block (`adjust_block`, then the acceptance of the
     module docstring); `building_wf` gives the vertices of the predicted uncertainty.
@@ -195,7 +196,7 @@ def refine_block(
         keep = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
         return keep, None, "fewer than 2 frames"
     res, _ = adjust_block(camera, scene_wf, raycaster, frames, images, prior, start, prior_info, options,
-                          fit_options, edge_options, feature_options)
+                          fit_options, edge_options, feature_options, prior_options)
     reason = block_reason(frames, prior, res, options)
     if reason:
         return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, reason
@@ -220,6 +221,7 @@ def refine_from_sequence(
     fit_options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
+    prior_options: PriorOptions = PriorOptions(),
 ) -> tuple[dict[int, RefinedPose], str]:
     """The building's frames after the sequence orientation (`orient_sequence`): each takes its
     sequence pose, checked against the BUILDING's own edges (`anchoring` of their edge support at
@@ -245,7 +247,7 @@ def refine_from_sequence(
     rms: dict[int, float] = {}
     for i, ed in edges.items():
         got = edge_support(camera, building_wf, raycaster, sequence.poses[i], ed.feats, edge_options,
-                           fit_options, options.bundle.null_shift_px)
+                           fit_options, prior_options.null_shift_px)
         if got is not None:
             support[i], null[i], off, matched[i] = got
             rms[i] = float(np.sqrt(np.mean(off**2))) if len(off) else float("nan")

@@ -97,10 +97,10 @@ from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.frame_fit import FrameFit, fit_frame
 from workers.pipeline.orientation.neighbours import (
     apply_coarse,
-    frame_noise_covariance,
     joint_coarse,
     predict,
 )
+from workers.pipeline.orientation.priors import PriorOptions, frame_noise_covariance, prior_information
 from workers.pipeline.orientation.wireframe import (
     EdgeOptions,
     Wireframe,
@@ -181,9 +181,10 @@ class CoregisterOptions:
     # the block is rejected, the frames go on one by one. Off: neither
     block_orientation: bool = True
     block: BlockOptions = field(default_factory=BlockOptions)
-    # per-frame deviation of the correction from its neighbours' (white noise, vibration)
-    frame_sigma_deg: float = 0.3
-    frame_sigma_m: float = 0.3
+    # per-frame deviation of a frame's correction from its neighbours' and from the common
+    # correction (white noise, vibration), and the null shift of the edge-support test: one
+    # `PriorOptions` for the frames, the joint fit and the block orientation
+    prior: PriorOptions = field(default_factory=PriorOptions)
     # neighbours further than this (Mahalanobis², per degree of freedom) from the prediction are
     # outliers; an accepted frame this far from its prediction is refitted
     outlier_gate: float = 9.0
@@ -209,11 +210,11 @@ class CoregisterOptions:
     calibrated_probe_frames: int = 5
 
 
-def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = 0.3,
-                       accuracy_floor_deg: float = 0.3) -> CoregisterOptions:
+def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = PriorOptions.frame_sigma_m,
+                       accuracy_floor_deg: float = PriorOptions.frame_sigma_deg) -> CoregisterOptions:
     """`options` for priors from an accepted sequence calibration: no joint coarse search and a
     narrow one in the joint fine stage, the prior's σ floors lowered to the per-frame deviations
-    (metres, degrees)."""
+    (metres, degrees; default: those of `PriorOptions`)."""
     # a narrow joint search stays: a calibration from a short sequence can leave a degree of pan
     # (drives: pan and a lateral offset are nearly interchangeable along one street)
     joint = replace(options.joint, coarse_radius_px=64.0, translation_max_m=1.0, translation_step_m=0.5,
@@ -221,30 +222,6 @@ def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = 0.3
     return replace(options, calibrated=True, joint_coarse=False, joint=joint,
                    prior_sigma_scale=1.0, position_sigma_floor_m=accuracy_floor_m,
                    attitude_sigma_floor_deg=accuracy_floor_deg)
-
-
-def prior_information(prior: Pose, accuracy: Accuracy | None, options: CoregisterOptions) -> np.ndarray:
-    """Information matrix `(6, 6)` of the prior on `δ = (ω_cam [rad], dC_world [m])`.
-
-    Position σ east, north, up from `accuracy.position_m`; attitude σ roll, pitch, heading
-    taken about the world's horizontal axes (roll, pitch, the larger of the two) and the vertical
-    (heading), rotated into the camera frame. Both scaled by `prior_sigma_scale` and floored.
-    """
-    if accuracy is None:
-        sp = np.full(3, options.default_position_sigma_m)
-        sa = np.full(3, options.default_attitude_sigma_deg)
-    else:
-        sp = np.broadcast_to(np.asarray(accuracy.position_m, dtype=np.float64), (3,))
-        sa = np.broadcast_to(np.asarray(accuracy.attitude_deg, dtype=np.float64), (3,))
-    sp = np.maximum(sp * options.prior_sigma_scale, options.position_sigma_floor_m)
-    sa = np.maximum(sa * options.prior_sigma_scale, options.attitude_sigma_floor_deg)
-    h = max(sa[0], sa[1])
-    cov_w = np.diag(np.radians([h, h, sa[2]]) ** 2)
-    R = prior.R_world_from_cam
-    info = np.zeros((6, 6))
-    info[:3, :3] = np.linalg.inv(R.T @ cov_w @ R)
-    info[3:, 3:] = np.diag(1.0 / sp**2)
-    return info
 
 
 def refine_building(
@@ -287,7 +264,8 @@ def refine_building(
     images = {i: frame_source.load(i) for i in frames}
     if sequence is not None and options.block_orientation:
         got, reason = refine_from_sequence(camera, wf, raycaster, frames, images, prior, sequence,
-                                           options.block, options.fit, options.edges, options.features)
+                                           options.block, options.fit, options.edges, options.features,
+                                           options.prior)
         if not reason:
             return got
     infos = {i: prior_information(prior[i], accuracy, options) for i in frames}
@@ -334,7 +312,7 @@ def refine_building(
     joint = None
     if options.joint_fine and common is None and scene_wf is not None:
         jf = joint_fit(camera, scene_wf, raycaster, frames, images, prior, infos[frames[len(frames) // 2]],
-                       options.joint, options.fit, options.edges, options.features)
+                       options.joint, options.fit, options.edges, options.features, options.prior)
         if jf.accepted:
             joint = jf
             starts = {i: apply_delta(prior[i], jf.frame_delta.get(i, jf.delta)) for i in frames}
@@ -382,7 +360,7 @@ def _orient(
         return {i: _result(i, f, prior[i]) for i, f in zip(frames, fits, strict=True)}
     t = np.array([times[i] for i in frames])
     deltas = np.array([pose_delta(prior[i], f.pose) for i, f in zip(frames, fits, strict=True)])
-    frame_cov = frame_noise_covariance(options.frame_sigma_deg, options.frame_sigma_m)
+    frame_cov = frame_noise_covariance(options.prior.frame_sigma_deg, options.prior.frame_sigma_m)
     out: dict[int, RefinedPose] = {}
     for j, i in enumerate(frames):
         f = fits[j]
@@ -427,7 +405,7 @@ def _block(camera: Camera, wf: Wireframe, scene_wf: Wireframe, raycaster: RayCas
     as a whole is rejected."""
     out, _, reason = refine_block(camera, wf, scene_wf, raycaster, frames, images, prior, starts,
                                   infos[frames[len(frames) // 2]], options.block, options.fit, options.edges,
-                                  options.features)
+                                  options.features, options.prior)
     return None if reason else out
 
 

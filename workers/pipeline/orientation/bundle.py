@@ -57,6 +57,7 @@ from workers.pipeline.orientation.edge_observations import (
 )
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
+from workers.pipeline.orientation.priors import PriorOptions
 from workers.pipeline.orientation.tracks import Tracks
 from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 
@@ -96,9 +97,6 @@ class BundleOptions:
     # a phase has converged when no frame moves by more than this (metres; rotations as the
     # motion they cause at 10 m)
     converged_m: float = 5e-4
-    # the final edge support is compared with the support of samples moved this far off their
-    # edges (clutter and noise alone)
-    null_shift_px: float = 6.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,6 +167,7 @@ def bundle_adjust(
     fit_options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
+    prior_options: PriorOptions = PriorOptions(),
 ) -> BundleResult:
     """Adjust the poses of `frames` from `start` (see the module docstring).
 
@@ -186,6 +185,7 @@ def bundle_adjust(
         wireframe: model edges to observe (None: no edge observations).
         raycaster: the scene (hidden-edge removal).
         options, fit_options, edge_options, feature_options: parameters.
+        prior_options: the null shift of the final edge support (`null_support`).
     """
     frames = list(frames)
     slot = {f: k for k, f in enumerate(frames)}
@@ -278,7 +278,7 @@ def bundle_adjust(
     matched: dict[int, int] = {}
     for f, ed in edges.items():
         got = edge_support(camera, wireframe, raycaster, poses[f], ed.feats, edge_options,  # type: ignore[arg-type]
-                           fit_options, options.null_shift_px)
+                           fit_options, prior_options.null_shift_px)
         if got is None:
             continue
         support[f], null[f], off, matched[f] = got

@@ -63,6 +63,7 @@ from workers.pipeline.orientation.edge_observations import (
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.oriented_gradient import downsampled_gradient, oriented_gradient_score
+from workers.pipeline.orientation.priors import PriorOptions, frame_noise_information
 from workers.pipeline.orientation.wireframe import (
     EdgeOptions,
     VisibleWireframe,
@@ -110,9 +111,9 @@ class CalibrationOptions:
     # large at turns only, often beyond the fine stage's search radius
     delay_search_s: float = 0.1
     delay_step_s: float = 0.0025
-    # per-frame deviations from the systematic model (white noise, vibration)
-    frame_sigma_deg: float = 0.3
-    frame_sigma_m: float = 0.3
+    # per-frame deviations from the systematic model (white noise, vibration), and the null shift
+    # of the acceptance's edge-support test below
+    prior: PriorOptions = field(default_factory=PriorOptions)
     # Gauss-Newton: edge search radius at the start (shrinks by `radius_decay`), iterations
     radius_start_px: float = 12.0
     radius_decay: float = 0.8
@@ -122,9 +123,8 @@ class CalibrationOptions:
     # at 0.35; noise is told apart by the null support below, 0.4 against 0.39)
     min_mean_support: float = 0.3
     min_supported_frames: int = 3
-    # ... and the support must exceed the null support (samples moved this far off their edges)
-    # by this much
-    null_shift_px: float = 6.0
+    # ... and the support must exceed the null support (samples moved `prior.null_shift_px` off
+    # their edges) by this much
     min_support_gain: float = 0.2
     max_correction_m: float = 12.0
     max_correction_deg: float = 10.0
@@ -217,8 +217,8 @@ def calibrated_accuracy(calibration: SequenceCalibration, options: CalibrationOp
     if not calibration.accepted:
         return prior
     var = np.diag(calibration.covariance)
-    pos = np.sqrt(options.frame_sigma_m**2 + var[3:6] + np.sum(var[6:9]) / 3.0)
-    att = np.degrees(np.sqrt(np.radians(options.frame_sigma_deg) ** 2 + var[0:3]))
+    pos = np.sqrt(options.prior.frame_sigma_m**2 + var[3:6] + np.sum(var[6:9]) / 3.0)
+    att = np.degrees(np.sqrt(np.radians(options.prior.frame_sigma_deg) ** 2 + var[0:3]))
     return Accuracy(position_m=pos, attitude_deg=att)
 
 
@@ -303,7 +303,7 @@ def calibrate_sequence(
     P = _prior_information(accuracy, options)
     start = joint_fit(camera, wireframe, raycaster, pick, images, {i: priors[i] for i in pick}, P[:6, :6],
                       replace(options.joint, max_frames=options.max_frames), fo, options.edges,
-                      options.features)
+                      options.features, options.prior)
     if not start.accepted:
         return replace(zero, reason=f"no common correction: {start.reason}", frames=tuple(pick))
     corrected = {i: apply_delta(priors[i], start.delta) for i in pick}
@@ -373,7 +373,7 @@ def _adjust(
     fo = options.fit
     theta = theta0.copy()
     eps = {f.index: np.zeros(6) for f in data}
-    F = np.diag([np.radians(options.frame_sigma_deg) ** -2] * 3 + [options.frame_sigma_m**-2] * 3)
+    F = frame_noise_information(options.prior)
     zero6 = np.zeros((6, 6))
     none = np.zeros((0, 2))
     vis: dict[int, VisibleWireframe] = {}
@@ -420,7 +420,7 @@ def _adjust(
     for f in data:
         # the null support: how often clutter or noise alone gives "support" (white noise ~0.4)
         got = edge_support(camera, wireframe, raycaster, apply_delta(f.prior, f.A @ theta + eps[f.index]),
-                           f.feats, options.edges, fo, options.null_shift_px)
+                           f.feats, options.edges, fo, options.prior.null_shift_px)
         if got is None:
             continue
         support[f.index], null[f.index], inl, _ = got

@@ -50,6 +50,7 @@ from workers.pipeline.orientation.edge_observations import (
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.oriented_gradient import downsampled_gradient, oriented_gradient_score
+from workers.pipeline.orientation.priors import PriorOptions, frame_noise_information
 from workers.pipeline.orientation.wireframe import EdgeOptions, VisibleWireframe, Wireframe
 
 __all__ = ["JointFit", "JointOptions", "joint_fit"]
@@ -99,10 +100,6 @@ class JointOptions:
     min_supported_frames: int = 3
     max_correction_m: float = 9.0
     max_correction_deg: float = 8.0
-    # per-frame deviation of a frame's correction from the common one (white position noise,
-    # vibration): standard deviations of `ε_i`
-    frame_sigma_deg: float = 0.3
-    frame_sigma_m: float = 0.3
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,10 +147,12 @@ def joint_fit(
     fit_options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
+    prior_options: PriorOptions = PriorOptions(),
 ) -> JointFit:
     """One common correction of the priors of `frames` (see the module docstring).
 
-    `prior_info` `(6, 6)`: information of the prior on the common `δ` (rad⁻², m⁻²).
+    `prior_info` `(6, 6)`: information of the prior on the common `δ` (rad⁻², m⁻²);
+    `prior_options`: the a-priori σ of the per-frame deviations `ε_i`.
     """
     frames = list(frames)
     pick = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, min(len(frames), options.max_frames))
@@ -173,10 +172,10 @@ def joint_fit(
     best = JointFit(delta=starts[0])
     if len(starts) > 1:
         fits = [_fine(camera, wireframe, raycaster, verify, d0, prior_info, options.verify_iterations,
-                      options, fit_options, edge_options) for d0 in starts]
+                      options, fit_options, edge_options, prior_options) for d0 in starts]
         best = max(fits, key=lambda f: f.mean_support)
     fit = _fine(camera, wireframe, raycaster, data, best.delta, prior_info, options.iterations, options,
-                fit_options, edge_options, radius_start=fit_options.edge_radius_start_px / 2)
+                fit_options, edge_options, prior_options, radius_start=fit_options.edge_radius_start_px / 2)
     supported = sum(s >= fit_options.min_support for s in fit.support.values())
     reason = ""
     if fit.mean_support < options.min_mean_support:
@@ -279,7 +278,7 @@ def _coarse_candidates(
 def _fine(
     camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame], delta0: np.ndarray,
     prior_info: np.ndarray, iterations: int, options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
-    radius_start: float | None = None,
+    prior_options: PriorOptions, radius_start: float | None = None,
 ) -> JointFit:
     """Gauss-Newton of the common correction `δ` and the per-frame deviations `ε_i` (information
     `F` from `frame_sigma_*`) from `delta0` over the frames of `data`: frame i is corrected by
@@ -287,7 +286,7 @@ def _fine(
     systems only."""
     delta = np.asarray(delta0, dtype=np.float64).copy()
     x = {fr.index: delta.copy() for fr in data}
-    F = np.diag([np.radians(options.frame_sigma_deg) ** -2] * 3 + [options.frame_sigma_m**-2] * 3)
+    F = frame_noise_information(prior_options)
     zero6 = np.zeros((6, 6))
     none = np.zeros((0, 2))
     r0 = options.radius_start_px if radius_start is None else radius_start

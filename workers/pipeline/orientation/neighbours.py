@@ -119,11 +119,6 @@ def apply_coarse(camera: Camera, pose: Pose, common: tuple[np.ndarray, float, fl
     return shift_pose(camera, moved, centre, shift, max(dmed - depth_m, 1.0), options)
 
 
-def frame_noise_covariance(sigma_deg: float, sigma_m: float) -> np.ndarray:
-    """`(6, 6)` diagonal per-frame deviation of the correction from its neighbours'."""
-    return np.diag([np.radians(sigma_deg) ** 2] * 3 + [sigma_m**2] * 3)
-
-
 def predict(
     j: int,
     times: np.ndarray,

@@ -45,7 +45,8 @@ from workers.pipeline.orientation.block import (
     anchoring,
     block_reason,
 )
-from workers.pipeline.orientation.building import CoregisterOptions, prior_information
+from workers.pipeline.orientation.building import CoregisterOptions
+from workers.pipeline.orientation.priors import prior_information
 from workers.pipeline.orientation.tracks import Tracks
 from workers.pipeline.orientation.wireframe import WireframeError, mesh_wireframe
 
@@ -67,7 +68,8 @@ class SequenceOrientationOptions:
     """Parameters of the sequence orientation (frames, seconds)."""
 
     block: BlockOptions = field(default_factory=BlockOptions)
-    # the prior's σ (metres, degrees) come from the accuracy as for a building unit
+    # the prior's σ (metres, degrees) come from the accuracy as for a building unit, the per-frame
+    # deviation and the null shift from its `prior`
     coregister: CoregisterOptions = field(default_factory=CoregisterOptions)
     # windows of consecutive frames, their overlap (a frame near a window's end has less context:
     # it takes its pose from the neighbouring window), a gap longer than this splits the sequence
@@ -203,7 +205,7 @@ def orient_sequence(
         info = prior_information(prior[block[len(block) // 2]], accuracy, options.coregister)
         co = options.coregister
         res, tracks = adjust_block(camera, scene_wf, raycaster, block, images, prior, prior, info,
-                                   options.block, co.fit, co.edges, co.features)
+                                   options.block, co.fit, co.edges, co.features, co.prior)
         reason = block_reason(block, prior, res, options.block)
         anchor = anchoring(block, res.edge_support, res.null_support, options.block) if not reason else {}
         if not reason and not any(anchor.values()):
