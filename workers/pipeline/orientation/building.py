@@ -91,15 +91,12 @@ from workers.pipeline.orientation.block import (
     refine_from_sequence,
     sigma_px,
 )
+from workers.pipeline.orientation.coarse import apply_coarse, joint_coarse
 from workers.pipeline.orientation.common_correction import JointOptions, joint_fit
 from workers.pipeline.orientation.features import FeatureError, FeatureOptions, extract_features
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.frame_fit import FrameFit, fit_frame
-from workers.pipeline.orientation.neighbours import (
-    apply_coarse,
-    joint_coarse,
-    predict,
-)
+from workers.pipeline.orientation.neighbours import predict
 from workers.pipeline.orientation.priors import PriorOptions, frame_noise_covariance, prior_information
 from workers.pipeline.orientation.wireframe import (
     EdgeOptions,

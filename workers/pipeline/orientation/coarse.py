@@ -1,10 +1,19 @@
-"""Coarse, correspondence-free stage of coregistration: edge-distance search over image shifts.
+"""Coarse, correspondence-free search of orientation: edge-distance scores over image shifts.
 
-In: a `Camera`, a pose, the visible wireframe, the frame's `ImageFeatures` (truncated distance
-transforms of a strong-edge map) and `FrameFitOptions`. Out: score maps over candidate poses
-(depth offsets along the optical axis, rolls about it) and image shifts (`cv2.matchTemplate` on a
-pyramid level), and the corrected pose: an image shift becomes a camera rotation plus a
-translation across the optical axis, split by their a-priori standard deviations.
+In: a `Camera`, a pose (or the poses of several frames), the visible wireframe, the frame's
+`ImageFeatures` (truncated distance transforms of a strong-edge map) and `FrameFitOptions`
+(`fit_options`). Out: score maps over candidate poses (depth offsets along the optical axis,
+rolls about it) and image shifts (`cv2.matchTemplate` on a pyramid level), and the corrected
+pose: an image shift becomes a camera rotation plus a translation across the optical axis, split
+by their a-priori standard deviations.
+
+- one frame (`coarse_search`, the first stage of `frame_fit.fit_frame`): the minimum of its own
+  score map;
+- several frames of a building at once (`joint_coarse`, `apply_coarse`; `building` step 2): the
+  GNSS/INS errors of consecutive frames share a constant boresight misalignment and a slowly
+  drifting position bias, so the score maps of all frames are averaged and the minimum is the
+  common correction, found where single frames are ambiguous (a neighbour's outline, a window
+  row).
 """
 
 from __future__ import annotations
@@ -18,6 +27,17 @@ from workers.pipeline.geometry.pose_increments import so3_exp
 from workers.pipeline.orientation.features import ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.wireframe import VisibleWireframe
+
+__all__ = [
+    "apply_coarse",
+    "candidate_pose",
+    "coarse_scores",
+    "coarse_search",
+    "joint_coarse",
+    "shift_penalty",
+    "shift_pose",
+    "shift_rotation",
+]
 
 
 def candidate_pose(pose: Pose, depth_m: float, roll_rad: float = 0.0) -> Pose:
@@ -128,3 +148,72 @@ def coarse_search(
     uv, z = moved.project(camera, vis.points)
     ref = np.nanmean(uv, axis=0)
     return shift_pose(camera, moved, ref, shift, float(np.median(z)), options)
+
+
+def joint_coarse(
+    camera: Camera,
+    poses: list[Pose],
+    visible: list[VisibleWireframe],
+    features: list[ImageFeatures],
+    options: FrameFitOptions,
+    rolls_deg: tuple[float, ...] = (0.0,),
+    min_gain: float = 0.35,
+    candidates: int = 1,
+) -> list[tuple[np.ndarray, float, float, float]]:
+    """Common coarse corrections of several frames, best first: each (image shift `(2,)` px at
+    the principal point, depth offset along the optical axis (m), roll about it (rad), median
+    depth (m)); empty without usable frames or without a distinct minimum.
+
+    The score maps of all frames over the same depth offsets (steps × the median sample depth)
+    and shifts are averaged; `apply_coarse` turns a result into each frame's pose. A candidate
+    is a local minimum inside the search window that lowers the typical score by `min_gain`; up
+    to `candidates` of them, at least 3 level pixels apart in shift (for verification by the
+    caller: repetitive scenes have several similar minima).
+    """
+    depths = []
+    for pose, vis in zip(poses, visible, strict=True):
+        _, z = pose.project(camera, vis.points)
+        depths.append(float(np.median(z)))
+    if not depths:
+        return []
+    dmed = float(np.median(depths))
+    steps = np.clip(np.asarray(options.coarse_depth_steps) * dmed, -options.coarse_max_depth_m,
+                    options.coarse_max_depth_m)
+    total = None
+    for pose, vis, feats in zip(poses, visible, features, strict=True):
+        sc = coarse_scores(camera, pose, vis, feats, steps, options, np.radians(rolls_deg))
+        total = sc if total is None else total + sc
+    if total is None:
+        return []
+    total = total / len(poses) + shift_penalty(total.shape, options)[None]
+    r = total.shape[-1] // 2
+    typical = float(np.median(total))
+    # best over depth and roll per shift, then minima with suppression of their neighbourhood
+    flat = total.min(axis=0)
+    which = total.argmin(axis=0)
+    work = flat.copy()
+    out = []
+    for _ in range(max(candidates, 1)):
+        iy, ix = np.unravel_index(int(np.argmin(work)), work.shape)
+        best = float(work[iy, ix])
+        # inside the window and clearly below the typical score; else no usable common signal
+        # (e.g. close-range drives that see facade interiors and hardly any model edge)
+        inside = min(ix, iy) > 0 and max(ix, iy) < 2 * r
+        if not np.isfinite(best) or not inside or best > (1.0 - min_gain) * typical:
+            break
+        k = int(which[iy, ix])
+        kd, kq = divmod(k, len(rolls_deg))
+        shift = np.array([ix - r, iy - r], dtype=np.float64) * options.coarse_level
+        out.append((shift, float(steps[kd]), float(np.radians(rolls_deg[kq])), dmed))
+        work[max(iy - 3, 0): iy + 4, max(ix - 3, 0): ix + 4] = np.inf
+    return out
+
+
+def apply_coarse(camera: Camera, pose: Pose, common: tuple[np.ndarray, float, float, float],
+                 options: FrameFitOptions) -> Pose:
+    """`pose` moved along its optical axis by the common depth offset, then shifted in the image by
+    the common shift (rotation and translation, `shift_pose`)."""
+    shift, depth_m, roll, dmed = common
+    moved = candidate_pose(pose, depth_m, roll)
+    centre = np.array([camera.cx, camera.cy])
+    return shift_pose(camera, moved, centre, shift, max(dmed - depth_m, 1.0), options)
