@@ -73,7 +73,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -85,21 +85,20 @@ from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.block import (
-    BlockOptions,
     UnitSequence,
     refine_block,
     refine_from_sequence,
     sigma_px,
 )
+from workers.pipeline.orientation.building_options import CoregisterOptions, calibrated_options
 from workers.pipeline.orientation.coarse import apply_coarse, joint_coarse
-from workers.pipeline.orientation.common_correction import JointOptions, joint_fit
-from workers.pipeline.orientation.features import FeatureError, FeatureOptions, extract_features
+from workers.pipeline.orientation.common_correction import JointFit, joint_fit
+from workers.pipeline.orientation.features import FeatureError, extract_features
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.frame_fit import FrameFit, fit_frame
 from workers.pipeline.orientation.neighbours import predict
-from workers.pipeline.orientation.priors import PriorOptions, frame_noise_covariance, prior_information
+from workers.pipeline.orientation.priors import frame_noise_covariance, prior_information
 from workers.pipeline.orientation.wireframe import (
-    EdgeOptions,
     Wireframe,
     WireframeError,
     building_wireframe,
@@ -109,116 +108,6 @@ from workers.pipeline.orientation.wireframe import (
 from workers.pipeline.results import RefinedPose
 
 __all__ = ["CoregisterOptions", "RefinedPose", "calibrated_options", "prior_information", "refine_building"]
-
-
-@dataclass(frozen=True)
-class CoregisterOptions:
-    """All parameters of the per-building orientation."""
-
-    # image features (Förstner, LSD, intersections, edge distance pyramid)
-    features: FeatureOptions = field(default_factory=FeatureOptions)
-    # model wireframe and its visibility
-    edges: EdgeOptions = field(default_factory=EdgeOptions)
-    # per-frame adjustment and acceptance
-    fit: FrameFitOptions = field(default_factory=FrameFitOptions)
-    # a-priori standard deviations when the manifest has no `accuracy` (metres, degrees)
-    default_position_sigma_m: float = 2.0
-    default_attitude_sigma_deg: float = 1.0
-    # the prior's standard deviations are multiplied by this and floored (the manifest's accuracy
-    # does not cover the unknown boresight misalignment of several degrees)
-    prior_sigma_scale: float = 2.0
-    position_sigma_floor_m: float = 1.0
-    attitude_sigma_floor_deg: float = 2.0
-    # sequence level: time window (seconds) and Gaussian time scale of the neighbour prediction;
-    # without times, frame indices are used as seconds
-    window_s: float = 4.0
-    time_sigma_s: float = 1.5
-    # joint coarse search over all frames of the building (common boresight/position error) ...
-    joint_coarse: bool = True
-    # ... at most this many frames (evenly spread) take part ...
-    joint_coarse_max_frames: int = 16
-    # ... on this pyramid level (full-resolution pixels per level pixel; the frames are first
-    # downsampled by `joint_coarse_downsample`), over image shifts up to this radius (pixels;
-    # model samples up to this far outside the frame take part) and these depth offsets (shares
-    # of the median depth)
-    joint_coarse_level: int = 8
-    joint_coarse_downsample: int = 2
-    joint_coarse_radius_px: float = 320.0
-    joint_coarse_depth_steps: tuple[float, ...] = (0.0,)
-    # ... with the wireframe of the whole scene of the ray caster (the building and its
-    # neighbours: a row of similar houses is no longer ambiguous) or of the building alone ...
-    joint_coarse_scene: bool = True
-    # ... the minimum must lower the typical mean edge distance by this share, else no joint
-    # correction is applied and every frame searches on its own ...
-    joint_coarse_min_gain: float = 0.35
-    # ... up to this many distinct minima, verified by the fine stage on `verify_frames` frames
-    # with the scene wireframe (the best confirmed one is applied) ...
-    joint_coarse_candidates: int = 3
-    verify_frames: int = 3
-    # ... and rolls about the optical axis (degrees; boresight errors of several degrees)
-    joint_coarse_rolls_deg: tuple[float, ...] = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)
-    # per-frame coarse search radius after the joint one, pixels (0: none; the per-frame search
-    # sees one building only and may jump to a similar neighbour)
-    frame_coarse_radius_px: float = 0.0
-    # when the joint coarse search finds no distinct minimum (close-range drives: vertical
-    # corners, window rows), ONE common correction of all frames is adjusted from the stacked
-    # edge observations of every frame against the scene wireframe (`coregister_joint`); when
-    # accepted, pass 1 is centred on it, and a frame still at its prior takes the jointly
-    # corrected pose with status "refined" when its own edge support there reaches
-    # `fit.min_support` and the joint uncertainty projected onto the building is
-    # ≤ `joint_max_sigma_px` (the common part of the error is then known; what a frame alone
-    # cannot observe of its own white noise stays, e.g. the height of a frame that sees only
-    # vertical corners)
-    joint_fine: bool = True
-    joint_max_sigma_px: float = 3.0
-    joint: JointOptions = field(default_factory=JointOptions)
-    # close-range drives: the building's frames oriented as one block (feature tracks and a
-    # bundle adjustment with the model: `coregister_block`) from the calibrated priors or from
-    # the joint correction, or taken from the sequence orientation when it ran (step 0b); when
-    # the block is rejected, the frames go on one by one. Off: neither
-    block_orientation: bool = True
-    block: BlockOptions = field(default_factory=BlockOptions)
-    # per-frame deviation of a frame's correction from its neighbours' and from the common
-    # correction (white noise, vibration), and the null shift of the edge-support test: one
-    # `PriorOptions` for the frames, the joint fit and the block orientation
-    prior: PriorOptions = field(default_factory=PriorOptions)
-    # neighbours further than this (Mahalanobis², per degree of freedom) from the prediction are
-    # outliers; an accepted frame this far from its prediction is refitted
-    outlier_gate: float = 9.0
-    # the regulariser of the prediction: this share of the prior's information
-    prediction_regulariser: float = 0.05
-    # inheritance of the neighbours' correction (see the module docstring)
-    inherit_min_neighbours: int = 3
-    inherit_max_sigma_px: float = 1.0
-    # run the sequence level (second pass, inheritance) at all ...
-    sequence: bool = True
-    # ... and only when at least this many frames converged in pass 1 (else there is nothing
-    # to predict from)
-    min_converged_frames: int = 2
-    # frames still at their prior are oriented (passes 1, 2, inheritance) against the whole
-    # scene of the ray caster, the building and its neighbours
-    scene_fallback: bool = True
-    # the priors come from an accepted sequence calibration (`calibrate`): the common error is
-    # already removed, so no joint coarse search and no coarse search of the joint fine stage
-    calibrated: bool = False
-    # ... then the joint adjustment runs only when fewer than this share of a probe of frames
-    # (evenly spread) is refined on its own
-    calibrated_joint_below: float = 0.5
-    calibrated_probe_frames: int = 5
-
-
-def calibrated_options(options: CoregisterOptions, accuracy_floor_m: float = PriorOptions.frame_sigma_m,
-                       accuracy_floor_deg: float = PriorOptions.frame_sigma_deg) -> CoregisterOptions:
-    """`options` for priors from an accepted sequence calibration: no joint coarse search and a
-    narrow one in the joint fine stage, the prior's σ floors lowered to the per-frame deviations
-    (metres, degrees; default: those of `PriorOptions`)."""
-    # a narrow joint search stays: a calibration from a short sequence can leave a degree of pan
-    # (drives: pan and a lateral offset are nearly interchangeable along one street)
-    joint = replace(options.joint, coarse_radius_px=64.0, translation_max_m=1.0, translation_step_m=0.5,
-                    candidates=1, translation_candidates=1)
-    return replace(options, calibrated=True, joint_coarse=False, joint=joint,
-                   prior_sigma_scale=1.0, position_sigma_floor_m=accuracy_floor_m,
-                   attitude_sigma_floor_deg=accuracy_floor_deg)
 
 
 def refine_building(
@@ -266,96 +155,133 @@ def refine_building(
         if not reason:
             return got
     infos = {i: prior_information(prior[i], accuracy, options) for i in frames}
-    starts = dict(prior)
-    fo = options.fit
-    scene_wf = None
-    has_mesh = getattr(raycaster, "mesh", None) is not None
-    if (options.joint_coarse_scene or options.scene_fallback) and has_mesh:
-        with contextlib.suppress(WireframeError):
-            scene_wf = mesh_wireframe(raycaster.mesh, options.edges)
-    coarse = True
-    common = None
-    if options.joint_coarse:
-        coarse_wf = scene_wf if (options.joint_coarse_scene and scene_wf is not None) else wf
-        found = _joint_coarse(camera, coarse_wf, raycaster, frames, images, prior, options)
-        if found:
-            fo_v = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
-            common = _verify(camera, coarse_wf, raycaster, frames, images, prior, infos, found, fo_v, options)
-            # the common correction is a sequence-level estimate: pass 1 is centred on it
-            starts = {i: apply_coarse(camera, prior[i], common, options.fit) for i in frames}
-            fo = replace(fo, coarse_radius_px=options.frame_coarse_radius_px)
-            coarse = options.frame_coarse_radius_px > 0
     t = {i: float(times[i]) if times is not None else float(i) for i in frames}
-    block = options.block_orientation and scene_wf is not None
+    u = _Unit(camera, wf, _scene_wireframe(raycaster, options), raycaster, frames, images, prior, infos, t,
+              options)
+    start = _Start(dict(prior), options.fit, True)
+    common = _common_coarse(u) if options.joint_coarse else None
+    if common is not None:
+        # the common correction is a sequence-level estimate: pass 1 is centred on it
+        start = _Start({i: apply_coarse(camera, prior[i], common, options.fit) for i in frames},
+                       replace(options.fit, coarse_radius_px=options.frame_coarse_radius_px),
+                       options.frame_coarse_radius_px > 0)
     if options.calibrated:
-        # calibrated priors: every frame on its own (flights), unless most frames of a probe do not
-        # determine their pose alone (close drives): then the block orientation
-        n = min(len(frames), options.calibrated_probe_frames)
-        probe = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n).round().astype(int))]
-        ok = [fit_frame(camera, wf, raycaster, images[i], starts[i], infos[i], starts[i], fo, options.edges,
-                        options.features, coarse=False).accepted for i in probe]
-        if np.mean(ok) >= options.calibrated_joint_below:
-            out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, False, options)
-            rest = [i for i in frames if out[i].status == "prior"]
-            if options.scene_fallback and scene_wf is not None and rest:
-                scene = _orient(camera, scene_wf, raycaster, rest, images, prior, starts, infos, t, fo, False,
-                                options)
-                out.update({i: r for i, r in scene.items() if r.status == "refined"})
-            return out
-        if block:
-            got = _block(camera, wf, scene_wf, raycaster, frames, images, prior, starts, infos, options)
-            if got is not None:
-                return got
+        got = _from_calibrated(u, start)
+        if got is not None:
+            return got
     joint = None
-    if options.joint_fine and common is None and scene_wf is not None:
-        jf = joint_fit(camera, scene_wf, raycaster, frames, images, prior, infos[frames[len(frames) // 2]],
+    if options.joint_fine and common is None and u.scene_wf is not None:
+        jf = joint_fit(camera, u.scene_wf, raycaster, frames, images, prior, infos[frames[len(frames) // 2]],
                        options.joint, options.fit, options.edges, options.features, options.prior)
         if jf.accepted:
             joint = jf
-            starts = {i: apply_delta(prior[i], jf.frame_delta.get(i, jf.delta)) for i in frames}
-            fo = replace(fo, coarse_radius_px=0.0)
-            coarse = False
-            if block:
-                got = _block(camera, wf, scene_wf, raycaster, frames, images, prior, starts, infos, options)
-                if got is not None:
-                    return got
-    out = _orient(camera, wf, raycaster, frames, images, prior, starts, infos, t, fo, coarse, options)
-    rest = [i for i in frames if out[i].status == "prior"]
-    # the scene is tried when it showed a common signal (joint coarse) or the building some frames
-    hope = common is not None or len(rest) < len(frames)
-    if options.scene_fallback and scene_wf is not None and rest and hope:
-        # the pose error belongs to the frame, not to a building: frames the building alone could
-        # not orient are oriented against the whole scene of the unit (building and neighbours)
-        scene = _orient(camera, scene_wf, raycaster, rest, images, prior, starts, infos, t, fo, coarse,
-                        options)
-        out.update({i: r for i, r in scene.items() if r.status == "refined"})
+            start = _Start({i: apply_delta(prior[i], jf.frame_delta.get(i, jf.delta)) for i in frames},
+                           replace(start.fit, coarse_radius_px=0.0), False)
+            got = _block(u, start.poses)
+            if got is not None:
+                return got
+    out = _orient_building_then_scene(u, start, scene_always=common is not None)
     if joint is not None:
-        # the common correction holds for every frame between frames that confirm it in time
-        ok_t = [t[i] for i in frames if joint.support.get(i, 0.0) >= options.fit.min_support]
-        for i in frames:
-            inside = bool(ok_t) and min(ok_t) <= t[i] <= max(ok_t)
-            if out[i].status == "refined" or not inside:
-                continue
-            if sigma_px(camera, starts[i], wf.vertices, joint.covariance) <= options.joint_max_sigma_px:
-                out[i] = RefinedPose(i, starts[i], "refined", float("nan"), 0)
+        _inherit_joint(u, joint, start.poses, out)
     return out
 
 
-def _orient(
-    camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int], images: Mapping[int, np.ndarray],
-    prior: Mapping[int, Pose], starts: Mapping[int, Pose], infos: Mapping[int, np.ndarray],
-    times: Mapping[int, float], fo: FrameFitOptions, coarse: bool, options: CoregisterOptions,
-) -> dict[int, RefinedPose]:
+@dataclass(frozen=True, eq=False)
+class _Unit:
+    """What the steps of one building's orientation share (`refine_building`)."""
+
+    camera: Camera
+    # the building's wireframe, and the wireframe of the ray caster's whole scene (None: no mesh)
+    wf: Wireframe
+    scene_wf: Wireframe | None
+    raycaster: RayCaster
+    # the building's frames in recording order, their images, priors, prior information, times (s)
+    frames: list[int]
+    images: Mapping[int, np.ndarray]
+    prior: Mapping[int, Pose]
+    infos: Mapping[int, np.ndarray]
+    times: Mapping[int, float]
+    options: CoregisterOptions
+
+
+@dataclass(frozen=True, eq=False)
+class _Start:
+    """Where pass 1 starts: a pose per frame, the frame fit's options, and whether each frame runs
+    its own coarse search."""
+
+    poses: Mapping[int, Pose]
+    fit: FrameFitOptions
+    coarse: bool
+
+
+def _scene_wireframe(raycaster: RayCaster, options: CoregisterOptions) -> Wireframe | None:
+    """The wireframe of the ray caster's whole scene (building and neighbours) when a step needs it
+    (joint coarse search on the scene, scene fallback) and the ray caster has a mesh; else None."""
+    has_mesh = getattr(raycaster, "mesh", None) is not None
+    if (options.joint_coarse_scene or options.scene_fallback) and has_mesh:
+        with contextlib.suppress(WireframeError):
+            return mesh_wireframe(raycaster.mesh, options.edges)
+    return None
+
+
+def _from_calibrated(u: _Unit, start: _Start) -> dict[int, RefinedPose] | None:
+    """Step 0, calibrated priors: every frame on its own (flights), unless most frames of a probe do
+    not determine their pose alone (close drives): then the block orientation. None when neither
+    applies (the block rejected) and the steps for uncalibrated priors go on."""
+    o = u.options
+    n = min(len(u.frames), o.calibrated_probe_frames)
+    probe = [u.frames[k] for k in np.unique(np.linspace(0, len(u.frames) - 1, n).round().astype(int))]
+    ok = [fit_frame(u.camera, u.wf, u.raycaster, u.images[i], start.poses[i], u.infos[i], start.poses[i],
+                    start.fit, o.edges, o.features, coarse=False).accepted for i in probe]
+    if np.mean(ok) >= o.calibrated_joint_below:
+        return _orient_building_then_scene(u, _Start(start.poses, start.fit, False), scene_always=True)
+    return _block(u, start.poses)
+
+
+def _orient_building_then_scene(u: _Unit, start: _Start, scene_always: bool) -> dict[int, RefinedPose]:
+    """Steps 1 and 3 against the building (`_orient`), then step 4 for the frames still at their
+    prior against the whole scene, when there is hope: `scene_always`, or the building oriented
+    some frames."""
+    out = _orient(u, u.wf, u.frames, start)
+    rest = [i for i in u.frames if out[i].status == "prior"]
+    # the scene is tried when it showed a common signal (joint coarse) or the building some frames
+    hope = scene_always or len(rest) < len(u.frames)
+    if u.options.scene_fallback and u.scene_wf is not None and rest and hope:
+        # the pose error belongs to the frame, not to a building: frames the building alone could
+        # not orient are oriented against the whole scene of the unit (building and neighbours)
+        scene = _orient(u, u.scene_wf, rest, start)
+        out.update({i: r for i, r in scene.items() if r.status == "refined"})
+    return out
+
+
+def _inherit_joint(u: _Unit, joint: JointFit, starts: Mapping[int, Pose],
+                   out: dict[int, RefinedPose]) -> None:
+    """Step 2b's inheritance, in `out`: a frame still at its prior takes its jointly corrected pose
+    `starts[i]` when it lies in time between frames whose edge support confirms the correction
+    and the correction's uncertainty projected onto the building is ≤ `joint_max_sigma_px`."""
+    o = u.options
+    ok_t = [u.times[i] for i in u.frames if joint.support.get(i, 0.0) >= o.fit.min_support]
+    for i in u.frames:
+        inside = bool(ok_t) and min(ok_t) <= u.times[i] <= max(ok_t)
+        if out[i].status == "refined" or not inside:
+            continue
+        if sigma_px(u.camera, starts[i], u.wf.vertices, joint.covariance) <= o.joint_max_sigma_px:
+            out[i] = RefinedPose(i, starts[i], "refined", float("nan"), 0)
+
+
+def _orient(u: _Unit, wf: Wireframe, frames: list[int], start: _Start) -> dict[int, RefinedPose]:
     """Pass 1, neighbour prediction, pass 2 and inheritance of `frames` against wireframe `wf`."""
+    camera, raycaster, images, prior, infos = u.camera, u.raycaster, u.images, u.prior, u.infos
+    options, starts, fo = u.options, start.poses, start.fit
     fits = [
         fit_frame(camera, wf, raycaster, images[i], starts[i], infos[i], starts[i], fo, options.edges,
-                  options.features, coarse=coarse)
+                  options.features, coarse=start.coarse)
         for i in frames
     ]
     usable = np.array([f.converged for f in fits])
     if not options.sequence or usable.sum() < options.min_converged_frames:
         return {i: _result(i, f, prior[i]) for i, f in zip(frames, fits, strict=True)}
-    t = np.array([times[i] for i in frames])
+    t = np.array([u.times[i] for i in frames])
     deltas = np.array([pose_delta(prior[i], f.pose) for i, f in zip(frames, fits, strict=True)])
     frame_cov = frame_noise_covariance(options.prior.frame_sigma_deg, options.prior.frame_sigma_m)
     out: dict[int, RefinedPose] = {}
@@ -374,8 +300,8 @@ def _orient(
             out[i] = _result(i, f, prior[i])
             continue
         centre = apply_delta(prior[i], pred.delta)
-        start = f.pose if (f.converged and consistent) else centre
-        f2 = fit_frame(camera, wf, raycaster, images[i], centre, np.linalg.inv(cov), start, fo, options.edges,
+        again = f.pose if (f.converged and consistent) else centre
+        f2 = fit_frame(camera, wf, raycaster, images[i], centre, np.linalg.inv(cov), again, fo, options.edges,
                        options.features, coarse=False)
         if f2.accepted:
             out[i] = _result(i, f2, prior[i])
@@ -395,15 +321,29 @@ def _result(i: int, fit: FrameFit, prior: Pose) -> RefinedPose:
     return RefinedPose(i, prior, "prior", fit.rms_px, fit.matches)
 
 
-def _block(camera: Camera, wf: Wireframe, scene_wf: Wireframe, raycaster: RayCaster, frames: list[int],
-           images: Mapping[int, np.ndarray], prior: Mapping[int, Pose], starts: Mapping[int, Pose],
-           infos: Mapping[int, np.ndarray], options: CoregisterOptions) -> dict[int, RefinedPose] | None:
-    """The block orientation of `frames` from `starts` (`coregister_block`), None when the block
-    as a whole is rejected."""
-    out, _, reason = refine_block(camera, wf, scene_wf, raycaster, frames, images, prior, starts,
-                                  infos[frames[len(frames) // 2]], options.block, options.fit, options.edges,
-                                  options.features, options.prior)
+def _block(u: _Unit, starts: Mapping[int, Pose]) -> dict[int, RefinedPose] | None:
+    """The block orientation of the unit's frames from `starts` (`block.refine_block`, step 2c);
+    None when it does not run (off, or no scene wireframe) or the block as a whole is rejected."""
+    o = u.options
+    if not (o.block_orientation and u.scene_wf is not None):
+        return None
+    mid = u.frames[len(u.frames) // 2]
+    out, _, reason = refine_block(u.camera, u.wf, u.scene_wf, u.raycaster, u.frames, u.images, u.prior,
+                                  starts, u.infos[mid], o.block, o.fit, o.edges, o.features, o.prior)
     return None if reason else out
+
+
+def _common_coarse(u: _Unit) -> tuple[np.ndarray, float, float, float] | None:
+    """Step 2: the common coarse correction of the unit's frames (`coarse.joint_coarse`), on the
+    scene wireframe (`joint_coarse_scene`) or the building's; of several candidates the one the
+    fine stage confirms best (`_verify`); None without a distinct minimum."""
+    o = u.options
+    coarse_wf = u.scene_wf if (o.joint_coarse_scene and u.scene_wf is not None) else u.wf
+    found = _joint_coarse(u.camera, coarse_wf, u.raycaster, u.frames, u.images, u.prior, o)
+    if not found:
+        return None
+    fo_v = replace(o.fit, coarse_radius_px=o.frame_coarse_radius_px)
+    return _verify(u, coarse_wf, found, fo_v)
 
 
 def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int],
@@ -444,22 +384,21 @@ def _joint_coarse(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: l
     return [(c[0] * ds, *c[1:]) for c in found]
 
 
-def _verify(camera: Camera, wf: Wireframe, raycaster: RayCaster, frames: list[int],
-            images: Mapping[int, np.ndarray], prior: Mapping[int, Pose], infos: Mapping[int, np.ndarray],
-            candidates: list[tuple[np.ndarray, float, float, float]], fo: FrameFitOptions,
-            options: CoregisterOptions) -> tuple[np.ndarray, float, float, float]:
+def _verify(u: _Unit, wf: Wireframe, candidates: list[tuple[np.ndarray, float, float, float]],
+            fo: FrameFitOptions) -> tuple[np.ndarray, float, float, float]:
     """The candidate whose corrected priors the fine stage confirms best on a few frames (sum of
     edge support of the converged fits), the first on ties."""
     if len(candidates) == 1:
         return candidates[0]
+    options, frames = u.options, u.frames
     n = min(len(frames), options.verify_frames)
     pick = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n).round().astype(int))]
     scores = []
     for c in candidates:
         total = 0.0
         for i in pick:
-            start = apply_coarse(camera, prior[i], c, options.fit)
-            f = fit_frame(camera, wf, raycaster, images[i], start, infos[i], start, fo, options.edges,
+            start = apply_coarse(u.camera, u.prior[i], c, options.fit)
+            f = fit_frame(u.camera, wf, u.raycaster, u.images[i], start, u.infos[i], start, fo, options.edges,
                           options.features, coarse=False)
             total += f.support if f.converged else 0.0
         scores.append(total)
