@@ -217,48 +217,25 @@ def bundle_adjust(
                                              f_obs[inl], t_obs[inl], uv_obs[inl], X, nrm, d_plane, w_tie,
                                              w_plane, options)
         if edges:
-            fo_it = replace(fit_options, tukey_min_px=max(fit_options.tukey_min_px, R_e / 3))
-            none = np.zeros((0, 2))
-            zero6 = np.zeros((6, 6))
-            for f, ed in edges.items():
-                if it % options.revisibility_every == 0 and it > 0:
-                    ed.vis = visible_samples(wireframe, camera, poses[f], raycaster, edge_options,  # type: ignore[arg-type]
-                                             fit_options.max_samples)
-                if ed.vis is None or len(ed.vis.points) < fit_options.min_samples:
-                    continue
-                He, ge, *_ = normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
-                                              fit_options.point_radius_min_px, poses[f], zero6, fo_it)
-                k = 6 * slot[f]
-                S[k:k + 6, k:k + 6] += options.edge_weight * He
-                b[k:k + 6] += options.edge_weight * ge
+            _add_edge_equations(S, b, camera, wireframe, raycaster, edges, poses, slot, it, R_e,  # type: ignore[arg-type]
+                                options, fit_options, edge_options)
         try:
             c = cho_factor(S)
         except np.linalg.LinAlgError:
             converged = False
             break
-        dx = cho_solve(c, b)
-        # one scale for the whole step (frames and common correction are coupled: bounding them
-        # one by one would change the step's direction)
-        dx = dx * min(step_scale(d, options.max_step_deg, options.max_step_m) for d in dx.reshape(-1, 6))
-        blocks = dx.reshape(-1, 6)
-        steps = blocks[:n]
+        dx = _bounded(cho_solve(c, b), options)
+        steps = dx.reshape(-1, 6)[:n]
         for f in frames:
             poses[f] = apply_delta(poses[f], steps[slot[f]])
-        big = max(float(np.max(np.linalg.norm(blocks[:, 3:], axis=1))),
-                  10.0 * float(np.max(np.linalg.norm(blocks[:, :3], axis=1))))
         if nc:
             common = common + dx[6 * n:]
-        # back-substitution of the points: ΔX_t = V_t⁻¹ (b_t − Σ W_oᵀ Δ_f(o)), with the steps taken
         if len(Wt):
-            fi, ti = f_obs[inl], t_obs[inl]
-            dpose = steps[fi]
-            rhs = bt.copy()
-            np.add.at(rhs, ti, -np.einsum("oij,oi->oj", Wt, dpose))
-            X = X + np.einsum("tij,tj->ti", V_inv, rhs)
+            X = X + _point_steps(V_inv, Wt, bt, steps[f_obs[inl]], t_obs[inl])
         # converged: steps below `converged_m` (rotations as metres at 10 m), the edge search at its
         # final radius; then the outliers go and the polish runs to convergence
         k_phase += 1
-        done = big < options.converged_m and R_e <= fit_options.edge_radius_min_px + 1e-9
+        done = _largest_move(dx) < options.converged_m and R_e <= fit_options.edge_radius_min_px + 1e-9
         if polish and (done or k_phase >= options.polish_iterations):
             break
         if not polish and (done or k_phase >= options.iterations):
@@ -266,39 +243,116 @@ def bundle_adjust(
             r = _residuals(camera, poses, frames, f_obs, t_obs, uv_obs, X)
             inl = np.linalg.norm(r, axis=1) <= options.outlier_px
     # figures at the final poses
+    inl, ties, tie_rms, sigma0 = _tie_figures(camera, poses, frames, slot, f_obs, t_obs, uv_obs, X, options)
+    edge_rms, support, null, matched = _edge_figures(camera, wireframe, raycaster, edges, poses,  # type: ignore[arg-type]
+                                                     edge_options, fit_options, prior_options.null_shift_px)
+    cov, factored = _covariances(S, frames, slot, sigma0)
+    return BundleResult(poses=poses, covariance=cov, ties=ties, tie_rms_px=tie_rms, edge_rms_px=edge_rms,
+                        edge_support=support, null_support=null, matched_edges=matched, points=X, inlier=inl,
+                        sigma0=sigma0, converged=converged and factored)
+
+
+def _bounded(dx: np.ndarray, options: BundleOptions) -> np.ndarray:
+    """The Gauss-Newton step `(6 (n + c),)` scaled so that no block moves more than `max_step_deg`
+    and `max_step_m`: one scale for the whole step (frames and common correction are coupled:
+    bounding them one by one would change the step's direction)."""
+    return dx * min(step_scale(d, options.max_step_deg, options.max_step_m) for d in dx.reshape(-1, 6))
+
+
+def _largest_move(dx: np.ndarray) -> float:
+    """The largest motion of a block of the step (metres; rotations as the motion they cause at
+    10 m)."""
+    blocks = dx.reshape(-1, 6)
+    return max(float(np.max(np.linalg.norm(blocks[:, 3:], axis=1))),
+               10.0 * float(np.max(np.linalg.norm(blocks[:, :3], axis=1))))
+
+
+def _add_edge_equations(
+    S: np.ndarray, b: np.ndarray, camera: Camera, wireframe: Wireframe, raycaster: RayCaster,
+    edges: Mapping[int, FrameEdges], poses: Mapping[int, Pose], slot: Mapping[int, int], it: int, R_e: float,
+    options: BundleOptions, fit_options: FrameFitOptions, edge_options: EdgeOptions,
+) -> None:
+    """Add the model-edge normal equations of every frame (search radius `R_e`, iteration `it`;
+    visibility recomputed every `revisibility_every` iterations) to the frames' blocks of the
+    reduced system `S`, `b` in place, weighted by `edge_weight`."""
+    fo_it = replace(fit_options, tukey_min_px=max(fit_options.tukey_min_px, R_e / 3))
+    none = np.zeros((0, 2))
+    zero6 = np.zeros((6, 6))
+    for f, ed in edges.items():
+        if it % options.revisibility_every == 0 and it > 0:
+            ed.vis = visible_samples(wireframe, camera, poses[f], raycaster, edge_options,
+                                     fit_options.max_samples)
+        if ed.vis is None or len(ed.vis.points) < fit_options.min_samples:
+            continue
+        He, ge, *_ = normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
+                                      fit_options.point_radius_min_px, poses[f], zero6, fo_it)
+        k = 6 * slot[f]
+        S[k:k + 6, k:k + 6] += options.edge_weight * He
+        b[k:k + 6] += options.edge_weight * ge
+
+
+def _point_steps(V_inv: np.ndarray, Wt: np.ndarray, bt: np.ndarray, dpose: np.ndarray,
+                 t_obs: np.ndarray) -> np.ndarray:
+    """Back-substitution of the points `(T, 3)`: ΔX_t = V_t⁻¹ (b_t − Σ W_oᵀ Δ_f(o)), with the
+    frames' steps `dpose` `(M, 6)` of the observations `t_obs` `(M,)` taken (`_normal_system`)."""
+    rhs = bt.copy()
+    np.add.at(rhs, t_obs, -np.einsum("oij,oi->oj", Wt, dpose))
+    return np.einsum("tij,tj->ti", V_inv, rhs)
+
+
+def _tie_figures(
+    camera: Camera, poses: Mapping[int, Pose], frames: Sequence[int], slot: Mapping[int, int],
+    f_obs: np.ndarray, t_obs: np.ndarray, uv_obs: np.ndarray, X: np.ndarray, options: BundleOptions,
+) -> tuple[np.ndarray, dict[int, int], dict[int, float], float]:
+    """The ties at the final poses: (inlier `(M,)` within `outlier_px`, inliers per frame, their
+    RMS per frame (px), σ0 of unit weight)."""
     r = _residuals(camera, poses, frames, f_obs, t_obs, uv_obs, X)
     e = np.linalg.norm(r, axis=1)
     inl = e <= options.outlier_px
     ties = {f: int(np.sum(inl & (f_obs == slot[f]))) for f in frames}
     tie_rms = {f: float(np.sqrt(np.mean(e[inl & (f_obs == slot[f])] ** 2))) if ties[f] else float("nan")
                for f in frames}
+    chi2 = float(np.sum((e[inl] / options.tie_sigma_px) ** 2))
+    # redundancy of the ties: 2 per observation, minus 2 per point (3 coordinates, 1 plane)
+    dof = 2 * int(inl.sum()) - 2 * int(np.unique(t_obs[inl]).size)
+    sigma0 = float(np.sqrt(chi2 / dof)) if dof > 0 else 1.0
+    return inl, ties, tie_rms, sigma0
+
+
+def _edge_figures(
+    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, edges: Mapping[int, FrameEdges],
+    poses: Mapping[int, Pose], edge_options: EdgeOptions, fit_options: FrameFitOptions, null_shift_px: float,
+) -> tuple[dict[int, float], dict[int, float], dict[int, float], dict[int, int]]:
+    """Per frame that sees model edges, at its final pose (`edge_observations.edge_support`): RMS
+    of the inlier edge offsets (px), edge support, null support (samples `null_shift_px` off
+    their edges), matched model edges."""
     edge_rms: dict[int, float] = {}
     support: dict[int, float] = {}
     null: dict[int, float] = {}
     matched: dict[int, int] = {}
     for f, ed in edges.items():
-        got = edge_support(camera, wireframe, raycaster, poses[f], ed.feats, edge_options,  # type: ignore[arg-type]
-                           fit_options, prior_options.null_shift_px)
+        got = edge_support(camera, wireframe, raycaster, poses[f], ed.feats, edge_options, fit_options,
+                           null_shift_px)
         if got is None:
             continue
         support[f], null[f], off, matched[f] = got
         edge_rms[f] = float(np.sqrt(np.mean(off**2))) if len(off) else float("nan")
-    chi2 = float(np.sum((e[inl] / options.tie_sigma_px) ** 2))
-    # redundancy of the ties: 2 per observation, minus 2 per point (3 coordinates, 1 plane)
-    dof = 2 * int(inl.sum()) - 2 * int(np.unique(t_obs[inl]).size)
-    sigma0 = float(np.sqrt(chi2 / dof)) if dof > 0 else 1.0
-    # the covariance from the Cholesky factor of the last system (NaN when it is not positive
-    # definite: the frames' poses are then not determined)
+    return edge_rms, support, null, matched
+
+
+def _covariances(S: np.ndarray, frames: Sequence[int], slot: Mapping[int, int],
+                 sigma0: float) -> tuple[dict[int, np.ndarray], bool]:
+    """The frames' covariances `(6, 6)` from the Cholesky factor of the last reduced system `S`,
+    scaled by max(1, σ0²), and whether `S` was positive definite (else NaN: the frames' poses
+    are not determined)."""
+    ok = True
     try:
         Sinv = cho_solve(cho_factor(S), np.eye(len(S)))
     except np.linalg.LinAlgError:
-        converged = False
+        ok = False
         Sinv = np.full_like(S, np.nan)
     s2 = max(1.0, sigma0**2)
-    cov = {f: Sinv[6 * slot[f]:6 * slot[f] + 6, 6 * slot[f]:6 * slot[f] + 6] * s2 for f in frames}
-    return BundleResult(poses=poses, covariance=cov, ties=ties, tie_rms_px=tie_rms, edge_rms_px=edge_rms,
-                        edge_support=support, null_support=null, matched_edges=matched, points=X, inlier=inl,
-                        sigma0=sigma0, converged=converged)
+    return {f: Sinv[6 * slot[f]:6 * slot[f] + 6, 6 * slot[f]:6 * slot[f] + 6] * s2 for f in frames}, ok
 
 
 def _residuals(camera: Camera, poses: Mapping[int, Pose], frames: Sequence[int], f_obs: np.ndarray,

@@ -45,7 +45,8 @@ from workers.pipeline.orientation.block import (
     anchoring,
     block_reason,
 )
-from workers.pipeline.orientation.building import CoregisterOptions
+from workers.pipeline.orientation.building_options import CoregisterOptions
+from workers.pipeline.orientation.bundle import BundleResult
 from workers.pipeline.orientation.priors import prior_information
 from workers.pipeline.orientation.tracks import Tracks
 from workers.pipeline.orientation.wireframe import WireframeError, mesh_wireframe
@@ -210,21 +211,8 @@ def orient_sequence(
         anchor = anchoring(block, res.edge_support, res.null_support, options.block) if not reason else {}
         if not reason and not any(anchor.values()):
             reason = "the block found the model nowhere (edge support)"
-        sup = [res.edge_support[f] for f in block if f in res.edge_support]
-        nul = [res.null_support[f] for f in block if f in res.null_support]
         taken = [f for f in block if anchor.get(f) is not False]
-        blocks.append({
-            "frames": [block[0], block[-1]],
-            "accepted": not reason,
-            "reason": reason,
-            "frames_anchored": sum(1 for f in block if anchor.get(f)),
-            "frames_without_edges_around": sum(1 for f in block if anchor.get(f, False) is None),
-            "mean_edge_support": round(float(np.mean(sup)), 3) if sup else None,
-            "null_support": round(float(np.mean(nul)), 3) if nul else None,
-            "sigma0": round(float(res.sigma0), 3),
-            "tracks": int(tracks.n_tracks),
-            "tie_observations": int(np.sum(res.inlier)),
-        })
+        blocks.append(_block_summary(block, res, tracks, anchor, reason))
         if reason:
             continue
         for k, f in enumerate(block):
@@ -242,3 +230,22 @@ def orient_sequence(
     # the same points again)
     kept = [t.subset(np.array([owner.get(int(f)) == w for f in t.frame], bool)) for w, t in parts.items()]
     return SequenceOrientation(poses, covariance, blocks, Tracks.concat(kept), ties, tie_rms)
+
+
+def _block_summary(block: list[int], res: BundleResult, tracks: Tracks, anchor: Mapping[int, bool | None],
+                   reason: str) -> dict:
+    """One window's entry of `SequenceOrientation.blocks` (see there)."""
+    sup = [res.edge_support[f] for f in block if f in res.edge_support]
+    nul = [res.null_support[f] for f in block if f in res.null_support]
+    return {
+        "frames": [block[0], block[-1]],
+        "accepted": not reason,
+        "reason": reason,
+        "frames_anchored": sum(1 for f in block if anchor.get(f)),
+        "frames_without_edges_around": sum(1 for f in block if anchor.get(f, False) is None),
+        "mean_edge_support": round(float(np.mean(sup)), 3) if sup else None,
+        "null_support": round(float(np.mean(nul)), 3) if nul else None,
+        "sigma0": round(float(res.sigma0), 3),
+        "tracks": int(tracks.n_tracks),
+        "tie_observations": int(np.sum(res.inlier)),
+    }

@@ -393,47 +393,12 @@ def track_sequence(
     act = _Active.empty(options)
     prev8 = None
     prev = None
-    lk = {"winSize": (options.lk_window_px, options.lk_window_px), "maxLevel": options.lk_levels}
     for f in frames:
         img = np.asarray(images[f], dtype=np.float32)
         img8 = _highpass8(img, options.highpass_sigma_px, gain)
         if len(act.ids) and prev is not None and prev8 is not None:
-            pose = poses[f]
-            mapped = _plane_map(camera, act.origin, act.rays, act.X0, act.normal, pose)
-            pred = mapped[:, 0]
-            pred_prev, _ = poses[prev].project(camera, act.X0)
-            ok = np.isfinite(mapped).all(axis=(1, 2)) & camera.in_image(pred, options.border_px / 2)
-            ok &= np.isfinite(pred_prev).all(axis=1)
-            new_uv = np.full((len(act.ids), 2), np.nan)
-            if ok.any():
-                p0 = act.last_uv[ok].astype(np.float32)[:, None]
-                guess = (act.last_uv[ok] + (pred[ok] - pred_prev[ok])).astype(np.float32)[:, None]
-                p1, st, _ = cv2.calcOpticalFlowPyrLK(prev8, img8, p0, guess.copy(),
-                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-                pb, st2, _ = cv2.calcOpticalFlowPyrLK(img8, prev8, p1, p0.copy(),
-                                                      flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-                good = (st[:, 0] == 1) & (st2[:, 0] == 1) & \
-                    (np.linalg.norm(pb[:, 0] - p0[:, 0], axis=1) < options.fb_tolerance_px)
-                idx = np.flatnonzero(ok)[good]
-                if len(idx):
-                    coarse = p1[good, 0].astype(np.float64)
-                    A = _affine(mapped[idx], 1.0)
-                    stack = cv2.merge([img, cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5),
-                                       cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)])
-                    fine, ncc = _fine(act.template[idx], stack, coarse, A, options)
-                    keep = (ncc >= options.min_ncc) & \
-                        (np.linalg.norm(fine - coarse, axis=1) <= options.fine_max_shift_px) & \
-                        camera.in_image(fine, 2.0)
-                    new_uv[idx[keep]] = fine[keep]
-            # RANSAC of the essential matrix between the previous frame and this one
-            m = np.isfinite(new_uv).all(axis=1)
-            if m.sum() >= 8:
-                xa = camera.normalized_from_pixel(act.last_uv[m])
-                xb = camera.normalized_from_pixel(new_uv[m])
-                _, inl = cv2.findEssentialMat(xa, xb, np.eye(3), cv2.RANSAC, 0.999,
-                                              options.ransac_px / camera.fx)
-                if inl is not None:
-                    new_uv[np.flatnonzero(m)[inl.ravel() == 0]] = np.nan
+            new_uv = _follow(camera, act, poses[prev], poses[f], prev8, img8, img, options)
+            _drop_essential_outliers(camera, act.last_uv, new_uv, options)
             cont = np.isfinite(new_uv).all(axis=1)
             if cont.any():
                 obs_t.append(act.ids[cont])
@@ -443,15 +408,7 @@ def track_sequence(
             act.n_obs = act.n_obs + 1
             act = act.select(cont & (act.n_obs < options.max_length))
         # new tracks in free cells
-        occupied = np.zeros((rows, cols), bool)
-        if len(act.ids):
-            c = np.clip((act.last_uv // options.cell_px).astype(int), 0, [cols - 1, rows - 1])
-            occupied[c[:, 1], c[:, 0]] = True
-        cand = _detect(texture_strength(img, options.window_sigma_px), occupied, options,
-                       options.max_tracks - len(act.ids))
-        if len(cand):
-            ok, X, _, nrm = _on_surface(camera, raycaster, poses[f], cand, options)
-            cand, X, nrm = cand[ok], X[ok], nrm[ok]
+        cand, X, nrm = _new_points(camera, raycaster, poses[f], img, act, (rows, cols), options)
         if len(cand):
             ids = np.arange(len(pts), len(pts) + len(cand))
             pts.extend(X)
@@ -467,3 +424,73 @@ def track_sequence(
     every = Tracks(np.concatenate(obs_t), np.concatenate(obs_f), np.concatenate(obs_uv), np.array(pts),
                    np.array(nrms))
     return every.subset(np.ones(len(every.track), bool))
+
+
+def _follow(camera: Camera, act: _Active, pose_prev: Pose, pose: Pose, prev8: np.ndarray, img8: np.ndarray,
+            img: np.ndarray, options: TrackOptions) -> np.ndarray:
+    """The active tracks followed from the previous frame into this one (`pose`, high-pass copy
+    `img8`, float frame `img`): prediction from the model points, coarse pyramidal LK with a
+    forward-backward check, fine LK against each track's first view warped by its plane's affine
+    map, accepted by correlation (module docstring, steps 1-3). -> `(N, 2)` positions, NaN where a
+    track was lost."""
+    lk = {"winSize": (options.lk_window_px, options.lk_window_px), "maxLevel": options.lk_levels}
+    mapped = _plane_map(camera, act.origin, act.rays, act.X0, act.normal, pose)
+    pred = mapped[:, 0]
+    pred_prev, _ = pose_prev.project(camera, act.X0)
+    ok = np.isfinite(mapped).all(axis=(1, 2)) & camera.in_image(pred, options.border_px / 2)
+    ok &= np.isfinite(pred_prev).all(axis=1)
+    new_uv = np.full((len(act.ids), 2), np.nan)
+    if ok.any():
+        p0 = act.last_uv[ok].astype(np.float32)[:, None]
+        guess = (act.last_uv[ok] + (pred[ok] - pred_prev[ok])).astype(np.float32)[:, None]
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(prev8, img8, p0, guess.copy(),
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(img8, prev8, p1, p0.copy(),
+                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        good = (st[:, 0] == 1) & (st2[:, 0] == 1) & \
+            (np.linalg.norm(pb[:, 0] - p0[:, 0], axis=1) < options.fb_tolerance_px)
+        idx = np.flatnonzero(ok)[good]
+        if len(idx):
+            coarse = p1[good, 0].astype(np.float64)
+            A = _affine(mapped[idx], 1.0)
+            stack = cv2.merge([img, cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5),
+                               cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)])
+            fine, ncc = _fine(act.template[idx], stack, coarse, A, options)
+            keep = (ncc >= options.min_ncc) & \
+                (np.linalg.norm(fine - coarse, axis=1) <= options.fine_max_shift_px) & \
+                camera.in_image(fine, 2.0)
+            new_uv[idx[keep]] = fine[keep]
+    return new_uv
+
+
+def _drop_essential_outliers(camera: Camera, last_uv: np.ndarray, new_uv: np.ndarray,
+                             options: TrackOptions) -> None:
+    """RANSAC of the essential matrix between the previous frame (`last_uv` `(N, 2)`) and this one
+    (`new_uv` `(N, 2)`, NaN where lost): outliers set to NaN in `new_uv` (module docstring, step 4)."""
+    m = np.isfinite(new_uv).all(axis=1)
+    if m.sum() >= 8:
+        xa = camera.normalized_from_pixel(last_uv[m])
+        xb = camera.normalized_from_pixel(new_uv[m])
+        _, inl = cv2.findEssentialMat(xa, xb, np.eye(3), cv2.RANSAC, 0.999,
+                                      options.ransac_px / camera.fx)
+        if inl is not None:
+            new_uv[np.flatnonzero(m)[inl.ravel() == 0]] = np.nan
+
+
+def _new_points(camera: Camera, raycaster: RayCaster, pose: Pose, img: np.ndarray, act: _Active,
+                grid: tuple[int, int], options: TrackOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """New tracks for the frame: textured points (`_detect`) in the cells of `grid` (rows, cols)
+    no active track occupies, kept where they lie on one model polygon (`_on_surface`) -> image
+    points `(K, 2)`, their model points `(K, 3)` and plane normals `(K, 3)`."""
+    rows, cols = grid
+    occupied = np.zeros((rows, cols), bool)
+    if len(act.ids):
+        c = np.clip((act.last_uv // options.cell_px).astype(int), 0, [cols - 1, rows - 1])
+        occupied[c[:, 1], c[:, 0]] = True
+    cand = _detect(texture_strength(img, options.window_sigma_px), occupied, options,
+                   options.max_tracks - len(act.ids))
+    X = nrm = np.zeros((0, 3))
+    if len(cand):
+        ok, X, _, nrm = _on_surface(camera, raycaster, pose, cand, options)
+        cand, X, nrm = cand[ok], X[ok], nrm[ok]
+    return cand, X, nrm

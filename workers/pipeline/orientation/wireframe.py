@@ -351,7 +351,24 @@ def visible_wireframe(
     d = (b - a)[edge_of[sel]]
     d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     vis_edges = np.unique(edge_of[sel])
-    # corners: the vertex itself visible and one of its edges seen
+    cor, cp = _visible_corners(wireframe, camera, pose, raycaster, vis_edges, options)
+    return VisibleWireframe(
+        points=pts[sel],
+        edge=edge_of[sel],
+        direction=d,
+        weight=wireframe.edge_weight[edge_of[sel]] * np.where(inner[sel], options.inner_weight, 1.0),
+        corners=cor,
+        corner_points=cp,
+        n_edges=len(vis_edges),
+    )
+
+
+def _visible_corners(wireframe: Wireframe, camera: Camera, pose: Pose, raycaster: RayCaster,
+                     vis_edges: np.ndarray, options: EdgeOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The corners `pose` sees: the vertex itself visible (in front, inside the frame, the ray to it
+    moved off the surfaces hits nothing) and one of its edges among `vis_edges` seen -> vertex
+    indices `(K,)` and points `(K, 3)`."""
+    V, Ed, C = wireframe.vertices, wireframe.edges, pose.center
     cor = wireframe.corners
     if len(cor) and len(vis_edges):
         has_edge = np.isin(cor, Ed[vis_edges].ravel())
@@ -372,12 +389,4 @@ def visible_wireframe(
             cor, cp = cor[vis_c], cp[vis_c]
     else:
         cp = np.zeros((0, 3))
-    return VisibleWireframe(
-        points=pts[sel],
-        edge=edge_of[sel],
-        direction=d,
-        weight=wireframe.edge_weight[edge_of[sel]] * np.where(inner[sel], options.inner_weight, 1.0),
-        corners=cor,
-        corner_points=cp,
-        n_edges=len(vis_edges),
-    )
+    return cor, cp
