@@ -18,9 +18,8 @@ from workers.pipeline.orientation.calibration import (
     apply_calibration,
     calibrate_sequence,
     calibrated_accuracy,
-    design,
-    frame_motion,
 )
+from workers.pipeline.orientation.calibration_model import design, frame_motion
 from workers.pipeline.orientation.mounting import (
     calibrated_mounting,
     calibration_report,

@@ -1,8 +1,12 @@
-"""Pose geometry of coregistration: rotation vectors, pose corrections and the projection Jacobian.
+"""Pose increments of the orientation: rotation vectors, pose corrections, bounded steps and the
+projection Jacobian.
 
 In: poses (`Pose`), world points `(N, 3)` (model CRS, metres), a `Camera`. Out: rotation matrices,
 corrections `δ = (ω, dC)` (ω rotation vector in the camera frame, radians; dC world metres, with
-`R ← R exp([ω]×)`, `C ← C + dC`) and `∂uv/∂δ` `(N, 2, 6)`.
+`R ← R exp([ω]×)`, `C ← C + dC`), Gauss-Newton steps bounded to their linearisation and
+`∂uv/∂δ` `(N, 2, 6)`. Every stage of `workers.pipeline.orientation` corrects poses this way (the
+frame fit `frame_fit`, the edge observations `edge_observations`, the joint fit
+`common_correction`, the bundle adjustment `bundle`, the calibration model `calibration_model`).
 """
 
 from __future__ import annotations

@@ -97,7 +97,8 @@ class BlockOptions:
 
 @dataclass(frozen=True, eq=False)
 class UnitSequence:
-    """What a building unit takes from the sequence orientation (`orient_sequence`) for its frames.
+    """What a building unit takes from the sequence orientation (`sequence.orient_sequence`) for its
+    frames.
 
     Attributes:
         poses: `{frame: Pose}` refined by the sequence orientation (the frames it oriented).
@@ -151,7 +152,8 @@ def adjust_block(
         prior_info: `(6, 6)` information of the prior's common error on `δ` (rad⁻², m⁻²),
             floored at the common σ floors.
         options, fit_options, edge_options, feature_options: parameters.
-        prior_options: the per-frame deviation from the block's common error.
+        prior_options: the per-frame deviation from the block's common error, the null shift of
+            the edge support.
     """
     frames = list(frames)
     white = np.linalg.inv(frame_noise_covariance(prior_options.frame_sigma_deg, prior_options.frame_sigma_m))
@@ -223,7 +225,7 @@ def refine_from_sequence(
     feature_options: FeatureOptions = FeatureOptions(),
     prior_options: PriorOptions = PriorOptions(),
 ) -> tuple[dict[int, RefinedPose], str]:
-    """The building's frames after the sequence orientation (`orient_sequence`): each takes its
+    """The building's frames after the sequence orientation (`sequence.orient_sequence`): each takes its
     sequence pose, checked against the BUILDING's own edges (`anchoring` of their edge support at
     those poses: where they contradict the pose, the frame keeps its prior) and accepted when the
     pose's marginal covariance from the sequence, projected onto the building's vertices, is at

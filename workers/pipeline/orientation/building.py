@@ -7,33 +7,34 @@ Out: `{frame: RefinedPose}` with status `"refined"` or `"prior"`.
 
 Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
 
-0b. when the sequence orientation ran (`orient_sequence`: tracks and a bundle adjustment of the
+0b. when the sequence orientation ran (`sequence.orient_sequence`: tracks and a bundle adjustment of the
    whole sequence in blocks against every building near the cameras, drives), the building's
    frames take its poses where the building's own edges confirm them and their covariance,
-   projected onto the building, is small enough (`coregister_block.refine_from_sequence`); when
+   projected onto the building, is small enough (`block.refine_from_sequence`); when
    the building's edges confirm them nowhere, the steps below run from the priors.
 
-0. when the priors come from an accepted sequence calibration (`calibrate`; options from
-   `calibrated_options`), the common error is already removed: a probe of frames decides whether
-   frames orient alone (flights: step 1 per frame, then 3 and 4) or not (close-range drives: the
-   block orientation 2c from the calibrated priors); steps 2 and the wide searches are skipped.
+0. when the priors come from an accepted sequence calibration (`calibration`; options from
+   `calibrated_options`, `building_options`), the common error is already removed: a probe of
+   frames decides whether frames orient alone (flights: step 1 per frame, then 3 and 4) or not
+   (close-range drives: the block orientation 2c from the calibrated priors); steps 2 and the
+   wide searches are skipped.
 
-1. per frame (`coregister_frame`): the building's wireframe with hidden edges removed by ray
-   casting through the whole scene (`model_edges`); Förstner points, LSD segments and their
+1. per frame (`frame_fit`): the building's wireframe with hidden edges removed by ray
+   casting through the whole scene (`wireframe`); Förstner points, LSD segments and their
    intersections, gradients and an edge-distance pyramid (`features`); iterative robust least
    squares (Tukey) of the six exterior-orientation parameters from edge-normal distances (1-D
    gradient search along each projected edge sample) and corner-to-point matches within a
    shrinking search radius R, the prior pose a weighted observation; accepted only when well
    determined (edge support, inlier RMS, inliers and edges, predicted reprojection uncertainty
    of the building ≤ `fit.max_sigma_px`, correction in a plausible range).
-2. **joint coarse search** (`coregister_sequence`, `coregister_coarse`): the correspondence-free
+2. **joint coarse search** (`coarse.joint_coarse`): the correspondence-free
    edge-distance score maps (image shift × roll × depth) of up to `joint_coarse_max_frames`
    frames are averaged, using the wireframe of the whole scene of the ray caster (building and
    neighbours: a row of similar houses is not ambiguous); when the minimum is distinct, the
    common correction (a rotation plus a translation across the optical axis, split by their
    a-priori sizes) is applied to every prior and pass 1 is centred on it. Else each frame runs
    its own coarse search (kept only when distinct, too).
-2b. **joint fine adjustment** (`coregister_joint`, when the joint coarse search finds no
+2b. **joint fine adjustment** (`common_correction`, when the joint coarse search finds no
    distinct minimum, as on close-range drives): ONE common correction of all frames plus small
    per-frame deviations, adjusted from the stacked edge observations of every frame against the
    scene wireframe (an oriented-gradient search over common image shifts first). When accepted,
@@ -42,7 +43,7 @@ Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
    4 takes its jointly corrected pose with status `"refined"` when it lies in time between frames
    whose edge support confirms the correction and the common correction's uncertainty projected
    onto the building is ≤ `joint_max_sigma_px`.
-2c. **block orientation** (`coregister_block`, close-range drives): feature tracks over the
+2c. **block orientation** (`block`, close-range drives): feature tracks over the
    facades (`tracks`) and a bundle adjustment of all the building's frames with the track points
    on the model's planes, the scene's model edges and the priors (`bundle`; Hoegner & Stilla,
    method 2). A frame is `"refined"` when the block found the model and the frame's own
@@ -50,10 +51,12 @@ Method (after Avbelj, Iwaszczuk, Stilla & Oštir 2012, extended):
 3. sequence level: corrections `δ = (ω_cam, dC_world)` of consecutive frames are strongly
    correlated (constant boresight error, slow GNSS drift). Frames that converged (found the
    building, whether or not alone they determine the pose) give each frame a **prediction**: the
-   information-weighted, time-weighted mean of its neighbours' corrections (outliers gated). A
+   information-weighted, time-weighted mean of its neighbours' corrections (outliers gated;
+   `neighbours.predict`). A
    frame accepted in pass 1 and consistent with its prediction keeps its fit; every other frame
    is fitted again (pass 2) with the prediction as its prior (covariance: the mean's plus the
-   per-frame noise `frame_sigma_*`), which determines frames that see only one or two edges.
+   per-frame noise `prior.frame_sigma_*`, `priors.PriorOptions`), which determines frames that
+   see only one or two edges.
    **Inheritance rule**: a frame that still fails takes the predicted pose with status
    `"refined"` only when at least `inherit_min_neighbours` converged neighbours lie within the
    window on both sides in time (interpolation, never extrapolation) and the prediction's own

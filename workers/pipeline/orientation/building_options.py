@@ -74,7 +74,7 @@ class CoregisterOptions:
     frame_coarse_radius_px: float = 0.0
     # when the joint coarse search finds no distinct minimum (close-range drives: vertical
     # corners, window rows), ONE common correction of all frames is adjusted from the stacked
-    # edge observations of every frame against the scene wireframe (`coregister_joint`); when
+    # edge observations of every frame against the scene wireframe (`common_correction`); when
     # accepted, pass 1 is centred on it, and a frame still at its prior takes the jointly
     # corrected pose with status "refined" when its own edge support there reaches
     # `fit.min_support` and the joint uncertainty projected onto the building is
@@ -85,7 +85,7 @@ class CoregisterOptions:
     joint_max_sigma_px: float = 3.0
     joint: JointOptions = field(default_factory=JointOptions)
     # close-range drives: the building's frames oriented as one block (feature tracks and a
-    # bundle adjustment with the model: `coregister_block`) from the calibrated priors or from
+    # bundle adjustment with the model: `block`) from the calibrated priors or from
     # the joint correction, or taken from the sequence orientation when it ran (step 0b); when
     # the block is rejected, the frames go on one by one. Off: neither
     block_orientation: bool = True
@@ -110,7 +110,7 @@ class CoregisterOptions:
     # frames still at their prior are oriented (passes 1, 2, inheritance) against the whole
     # scene of the ray caster, the building and its neighbours
     scene_fallback: bool = True
-    # the priors come from an accepted sequence calibration (`calibrate`): the common error is
+    # the priors come from an accepted sequence calibration (`calibration`): the common error is
     # already removed, so no joint coarse search and no coarse search of the joint fine stage
     calibrated: bool = False
     # ... then the joint adjustment runs only when fewer than this share of a probe of frames

@@ -13,14 +13,14 @@ lying on the model's planes, the model's edges wherever a frame sees them, and t
 the tied block in the model.
 
 Unknowns: per frame a correction `δ_f = (ω_cam, dC_world)` of its pose
-(`coregister_geometry.apply_delta`), per track its world point `X_t` (3). Observations:
+(`geometry.pose_increments.apply_delta`), per track its world point `X_t` (3). Observations:
 
 - tie points: image positions of every track observation, σ `tie_sigma_px`, Huber weights;
 - planes: the distance of `X_t` from the plane of the model polygon its track lies on, σ
   `plane_sigma_m`, re-weighted by that distance each iteration (Tukey: points off the model, on
   trees, cars or recessed windows, lose their weight);
 - model edges: the edge-normal distances of every visible wireframe sample to the strongest
-  image edge along the normal (`coregister_frame.normal_equations`, Tukey weights, search
+  image edge along the normal (`edge_observations.normal_equations`, Tukey weights, search
   radius shrinking from `edge_radius_start_px`), weighted by `edge_weight`;
 - priors: the GNSS/INS errors of a block's frames are not independent (Kolecki et al.; the
   calibration leaves a common error of decimetres, the white noise and vibration vary from frame
@@ -109,7 +109,8 @@ class BundleResult:
         ties: `{frame: inlier tie observations}`.
         tie_rms_px: `{frame: RMS of its inlier tie residuals}` (NaN without ties).
         edge_rms_px, edge_support, null_support, matched_edges: per frame that sees model edges,
-            at its refined pose (`coregister_frame.edge_support`, null shift `null_shift_px`):
+            at its refined pose (`edge_observations.edge_support`, null shift
+            `PriorOptions.null_shift_px`):
             RMS of the inlier edge offsets, support, null support, matched model edges.
         points: `(T, 3)` adjusted track points (world).
         inlier: `(M,)` bool per tie observation of the tracks (of the block's frames).

@@ -8,30 +8,30 @@ offset `b` (world, metres), a lever-arm correction `l` (camera frame, metres) an
 time delay `τ` (seconds), their covariance, acceptance; `apply_calibration` gives the calibrated
 prior of every frame.
 
-Why (Kolecki, Iwaszczuk & Stilla 2010; DESIGN.md "calibrate ... once per sequence"): the
+Why (Kolecki, Iwaszczuk & Stilla 2010; README.md, Commands: "calibrates the sequence once"): the
 boresight misalignment, the lever arm the manifest does not know, the GNSS bias and the time
 delay are constant over a sequence, while a single close-range frame of a drive (vertical
 building corners only) does not determine its pose, and a single building seen along a straight
 street cannot tell a lever arm from a GNSS offset. Over the whole sequence and all its buildings,
 with the headings changing at every turn, all of them are observable.
 
-Model (`calibrate_model`): frame i's correction `δ_i = (ω_i, dC_i)`
-(`coregister_geometry.apply_delta`) is
+Model (`calibration_model`): frame i's correction `δ_i = (ω_i, dC_i)`
+(`geometry.pose_increments.apply_delta`) is
 
     ω_i  = ω − τ · Ω_i            (Ω_i: angular rate of the prior, camera frame, rad/s)
     dC_i = b + R_i · l − τ · v_i  (v_i: velocity of the prior centre, world, m/s)
     x_i  = A_i θ + ε_i,           θ = (ω, b, l, τ) (10,)
 
 (exposure at `time − τ`, linearised), with per-frame deviations `ε_i` (white GNSS noise,
-vibration) of a-priori σ `frame_sigma_*`, eliminated by a Schur complement.
+vibration) of a-priori σ `prior.frame_sigma_*` (`priors.PriorOptions`), eliminated by a Schur complement.
 
 Method:
 1. up to `max_frames` frames spread over the sequence whose prior view shows scene edges;
-2. start: the common correction `(ω, b)` of those frames from `coregister_joint.joint_fit`
+2. start: the common correction `(ω, b)` of those frames from `common_correction.joint_fit`
    against the scene wireframe (oriented-gradient search over common image shifts and common
    world translations, then a robust adjustment), `l = 0`, `τ = 0`;
 3. Gauss-Newton of θ and the `ε_i` from every frame's edge-normal distances (1-D gradient search
-   along each projected edge sample, Tukey weights; `coregister_frame.normal_equations`) with a
+   along each projected edge sample, Tukey weights; `edge_observations.normal_equations`) with a
    shrinking search radius; θ has a weighted prior of zero (`Accuracy` for `ω` and `b`,
    `lever_arm_sigma_m`, `time_delay_sigma_s`);
 4. accepted when the mean edge support of the frames reaches `min_mean_support`, at least
@@ -78,8 +78,6 @@ __all__ = [
     "apply_calibration",
     "calibrate_sequence",
     "calibrated_accuracy",
-    "design",
-    "frame_motion",
 ]
 
 
@@ -118,7 +116,7 @@ class CalibrationOptions:
     radius_start_px: float = 12.0
     radius_decay: float = 0.8
     iterations: int = 12
-    # acceptance (edge support as in `coregister_joint`)
+    # acceptance (edge support as in `common_correction`)
     # (0.3: tall facades at close range show few model edges, the Berlin drive calibrates right
     # at 0.35; noise is told apart by the null support below, 0.4 against 0.39)
     min_mean_support: float = 0.3
@@ -143,7 +141,7 @@ class SequenceCalibration:
         frames: frames that took part.
         support: `{frame: share of visible edge samples with an image edge within support_px}`.
         mean_support: mean of `support`.
-        mean_null_support: the same share with the samples moved `null_shift_px` off their edges
+        mean_null_support: the same share with the samples moved `prior.null_shift_px` off their edges
             along the image normal (edge clutter and noise; `mean_support` must exceed it by
             `min_support_gain`).
     """

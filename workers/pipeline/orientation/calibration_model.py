@@ -2,13 +2,13 @@
 
 θ = (ω boresight correction, camera frame, rad; b GNSS offset, world, m; l lever-arm correction,
 camera frame, m; τ camera-to-INS delay, s). Frame i's correction `δ_i = (ω_i, dC_i)`
-(`coregister_geometry.apply_delta`) is linear in θ, `δ_i = A_i θ`:
+(`geometry.pose_increments.apply_delta`) is linear in θ, `δ_i = A_i θ`:
 
     ω_i  = ω − τ · Ω_i            (Ω_i: angular rate of the prior, camera frame, rad/s)
     dC_i = b + R_i · l − τ · v_i  (v_i: velocity of the prior centre, world, m/s)
 
-(exposure at `time − τ`, linearised). Used by `calibrate` (estimation) and
-`calibrate_mounting` (θ in the manifest's mounting terms).
+(exposure at `time − τ`, linearised). Used by `calibration` (estimation) and
+`mounting` (θ in the manifest's mounting terms).
 """
 
 from __future__ import annotations

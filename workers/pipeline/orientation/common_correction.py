@@ -2,8 +2,9 @@
 
 In: `Camera`, a wireframe (the whole scene of the ray caster: building and neighbours), the
 `RayCaster`, frames with their images and prior poses, the prior's information matrix and
-`JointOptions`. Out: `JointFit` (the common correction `δ = (ω_cam, dC_world)`, applied to every
-prior with `apply_delta`, its covariance, the mean edge support, acceptance).
+`JointOptions`, `FrameFitOptions` and `PriorOptions`. Out: `JointFit` (the common correction
+`δ = (ω_cam, dC_world)`, applied to every prior with `geometry.pose_increments.apply_delta`, its
+covariance, the mean edge support, acceptance).
 
 Why: the GNSS bias and the boresight misalignment are constant over a building's frames and the
 INS relative trajectory is precise, while a single close-range frame of a drive (vertical
@@ -15,17 +16,18 @@ and the heading; frames that see an eave, a roof line or a ground line fix heigh
 Two stages:
 
 1. **coarse**: an oriented-gradient score of the projected wireframe samples, summed over frames,
-   for common image shifts on a grid (frames downsampled and smoothed; the score of a sample is
-   the image gradient component along the projected edge's normal minus the one across it,
-   normalised per frame): correspondence-free and insensitive to the window rows the model does
+   for common image shifts on a grid (`oriented_gradient`: frames downsampled and smoothed; the
+   score of a sample is the image gradient component along the projected edge's normal minus the
+   one across it, normalised per frame): correspondence-free and insensitive to the window rows the model does
    not contain (a plain distance transform is not). The best local maxima are candidates; so
    are the best common world translations (a 3-D grid, refined on a finer one): at close range
    a position bias shifts near and far facades differently, which no common image shift explains;
 2. **fine**: Gauss-Newton of the six common parameters (plus per-frame deviations `ε_i` with
-   a-priori σ `frame_sigma_*`, eliminated by a Schur complement) from every frame's edge-normal distances
-   (1-D gradient search along each projected edge sample, `coregister_frame.normal_equations`,
-   Tukey weights) with a shrinking search radius, the prior a weighted observation. Each
-   candidate is run on a few frames; the one with the highest edge support is refined on all.
+   a-priori σ `PriorOptions.frame_sigma_*`, `priors`, eliminated by a Schur complement) from every
+   frame's edge-normal distances (1-D gradient search along each projected edge sample,
+   `edge_observations.normal_equations`, Tukey weights) with a shrinking search radius, the prior
+   a weighted observation. Each candidate is run on a few frames; the one with the highest edge
+   support is refined on all.
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ class JointOptions:
     # at most this many frames (evenly spread) take part
     max_frames: int = 40
     # run the coarse search (common image shifts, common world translations); off when the priors
-    # are already calibrated for the sequence (`calibrate`): the fine stage starts at zero
+    # are already calibrated for the sequence (`calibration`): the fine stage starts at zero
     search: bool = True
     # coarse: frames downsampled by this factor, smoothed with this σ (downsampled pixels) ...
     coarse_downsample: int = 2
@@ -281,9 +283,9 @@ def _fine(
     prior_options: PriorOptions, radius_start: float | None = None,
 ) -> JointFit:
     """Gauss-Newton of the common correction `δ` and the per-frame deviations `ε_i` (information
-    `F` from `frame_sigma_*`) from `delta0` over the frames of `data`: frame i is corrected by
-    `x_i = δ + ε_i`; the `ε_i` are eliminated (Schur complement) so every step solves 6 × 6
-    systems only."""
+    `F` from `prior_options`, `priors.frame_noise_information`) from `delta0` over the frames of
+    `data`: frame i is corrected by `x_i = δ + ε_i`; the `ε_i` are eliminated (Schur complement)
+    so every step solves 6 × 6 systems only."""
     delta = np.asarray(delta0, dtype=np.float64).copy()
     x = {fr.index: delta.copy() for fr in data}
     F = frame_noise_information(prior_options)

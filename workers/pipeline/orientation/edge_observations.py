@@ -1,7 +1,7 @@
 """Edge observations of one frame against a model wireframe: what the orientation stages share.
 
-In: a `Camera`, a pose, a `Wireframe` (`model_edges`) and the `RayCaster` of the scene, a frame's
-`ImageFeatures` (`features`), `FrameFitOptions` (`coregister_frame`). Out: the visible edge
+In: a `Camera`, a pose, a `Wireframe` (`wireframe`) and the `RayCaster` of the scene, a frame's
+`ImageFeatures` (`features`), `FrameFitOptions` (`fit_options`). Out: the visible edge
 samples (thinned), the frame box around them, the 1-D search along each projected edge's normal
 for the strongest image edge (signed sub-pixel offsets), the normal equations of the six
 exterior-orientation parameters from those offsets (Tukey weights) and from corner-to-point
@@ -9,9 +9,9 @@ matches, and the edge support of a pose (share of samples on an image edge, and 
 the samples moved off their edges: the null support).
 
 Poses are corrected by `δ = (ω, dC)` with `R_world_from_cam ← R · exp([ω]×)` (ω in the camera
-frame, radians) and `C ← C + dC` (world, metres), `coregister_geometry`. Used by the per-frame fit
-(`coregister_frame`), the joint fit (`coregister_joint`), the calibration (`calibrate`) and the
-bundle adjustment (`bundle`).
+frame, radians) and `C ← C + dC` (world, metres), `geometry.pose_increments`. Used by the
+per-frame fit (`frame_fit`), the joint fit (`common_correction`), the calibration (`calibration`),
+the bundle adjustment (`bundle`) and the block's check of the sequence poses (`block`).
 """
 
 from __future__ import annotations

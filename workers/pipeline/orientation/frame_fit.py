@@ -1,12 +1,15 @@
 """Coregistration of one frame to one building: coarse edge-distance search, then iterative
 robust least squares of the six exterior-orientation parameters.
 
-In: `Camera`, building `Wireframe`, `RayCaster` over the scene, the frame's `ImageFeatures`, the
-GNSS/INS prior pose with its information matrix, a start pose. Out: `FrameFit` (refined pose,
-acceptance, residuals, matches, predicted reprojection uncertainty).
+In: `Camera`, building `Wireframe` (`wireframe`), `RayCaster` over the scene, the frame `(H, W)`
+float32 (its `ImageFeatures` are extracted around the projected wireframe, `features`), the
+GNSS/INS prior pose with its information matrix, a start pose, `FrameFitOptions`
+(`fit_options`). Out: `FrameFit` (refined pose, acceptance, residuals, matches, predicted
+reprojection uncertainty).
 
 Pose parameters: a correction `δ = (ω, dC)` with `R_world_from_cam ← R · exp([ω]×)` (ω in the
-camera frame, radians) and `C ← C + dC` (world, metres). Observations:
+camera frame, radians) and `C ← C + dC` (world, metres), `geometry.pose_increments`.
+Observations (`edge_observations.normal_equations`):
 
 - edge samples of the visible wireframe, each matched by a 1-D search along the projected edge's
   normal for the strongest image gradient parallel to that normal (point-to-line residual),
@@ -15,10 +18,10 @@ camera frame, radians) and `C ← C + dC` (world, metres). Observations:
 - the prior pose as a weighted observation of `δ = 0`.
 
 Weights: class weight of the edge × Tukey biweight of the residual; R shrinks with the fit.
-A coarse stage first minimises the mean truncated distance-transform value of the projected edge
-samples (correspondence-free) over depth offsets along the optical axis and image shifts
-(`cv2.matchTemplate` on a downsampled pyramid level), so that metres and degrees of prior error
-are recovered before the local adjustment.
+A coarse stage (`coarse.coarse_search`) first minimises the mean truncated distance-transform
+value of the projected edge samples (correspondence-free) over depth offsets along the optical
+axis and image shifts (`cv2.matchTemplate` on a downsampled pyramid level), so that metres and
+degrees of prior error are recovered before the local adjustment.
 """
 
 from __future__ import annotations

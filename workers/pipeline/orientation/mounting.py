@@ -1,23 +1,23 @@
-"""A sequence calibration (`calibrate.SequenceCalibration`) in the manifest's mounting terms.
+"""A sequence calibration (`calibration.SequenceCalibration`) in the manifest's mounting terms.
 
 In: the manifest's `Mounting` (nominal `M`, boresight `b0 = [bx, by, bz]` degrees about body
 axes, lever arm `L0` body metres) and an accepted calibration θ = (ω camera rad, b world m,
 l camera m, τ s).
-Out: the full estimated mounting (`spec/results-format.md`, orientation.json `mounting`: the
+Out: the full estimated mounting (`docs/results-format.md`, orientation.json `mounting`: the
 estimated values, not corrections), and JSON-ready blocks for `orientation.json` and
 `report.json`.
 
-Conventions (`spec/sequence-format.md`): `R_bc = Rb(boresight) · M`, `Rb = Rz(bz)·Ry(by)·Rx(bx)`,
+Conventions (`docs/sequence-format.md`): `R_bc = Rb(boresight) · M`, `Rb = Rz(bz)·Ry(by)·Rx(bx)`,
 `R_wc = R_wb · R_bc`, `C = P + R_wb · L`. The calibration corrects a prior pose as
-`R_wc' = R_wc · exp([ω]×)` and `C' = C + b + R_wc · l` (`calibrate.design`, with `R_wc` the
-*prior* rotation), hence:
+`R_wc' = R_wc · exp([ω]×)` and `C' = C + b + R_wc · l` (`calibration_model.design`, with `R_wc`
+the *prior* rotation), hence:
 
 - `R_bc' = Rb0 · M · exp([ω]×)`, so `Rb' = Rb0 · M · exp([ω]×) · Mᵀ`, decomposed z-y-x like an
-  attitude (`georef.attitude_from_ned_from_body`: `Rz(heading)·Ry(pitch)·Rx(roll)` is the same
-  product as `Rz(bz)·Ry(by)·Rx(bx)`), each angle wrapped to (−180°, 180°];
+  attitude (`geometry.georef.attitude_from_ned_from_body`: `Rz(heading)·Ry(pitch)·Rx(roll)` is
+  the same product as `Rz(bz)·Ry(by)·Rx(bx)`), each angle wrapped to (−180°, 180°];
 - `L' = L0 + R_bc0 · l` (`R_bc0 = Rb0 · M`, the prior's camera-to-body rotation, exactly the
-  rotation `calibrate.design` applies to `l`; using the corrected `R_bc'` instead would differ by
-  `ω × l`, second order);
+  rotation `calibration_model.design` applies to `l`; using the corrected `R_bc'` instead would
+  differ by `ω × l`, second order);
 - `time_delay_s = τ`; the GNSS offset `b` (world) is no mounting term and is reported apart.
 """
 

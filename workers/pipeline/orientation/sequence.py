@@ -9,7 +9,7 @@ Out: `SequenceOrientation`: per frame the refined pose and its covariance (or th
 block was rejected), per block its figures, and the tracks with their adjusted points, which the
 building units reuse (`SequenceOrientation.for_frames`).
 
-Why (Hoegner & Stilla, method 2; DESIGN.md "calibrate ... once per sequence"): a close-range
+Why (Hoegner & Stilla, method 2; README.md, Commands): a close-range
 drive frame rarely shows enough model edges to fix its pose, and a building often shows none in
 a run of frames (a long blank facade, a party wall); tied by feature tracks to the frames before
 and after it, which see other buildings' edges, such a frame is still well determined. A block of
@@ -17,10 +17,10 @@ one building's frames alone would lose exactly those neighbours.
 
 Method: the frames are split where the time between two frames exceeds `max_gap_s`, then into
 windows of `window_frames` overlapping by `overlap_frames`; each window is one block
-(`coregister_block.adjust_block`: tracks, bundle adjustment against the scene wireframe with a
+(`block.adjust_block`: tracks, bundle adjustment against the scene wireframe with a
 common prior error of the block and per-frame noise, tracked again when the ties fit badly). A
 frame whose neighbours with model edges do not support the adjusted poses
-(`coregister_block.anchoring`) keeps its prior; a frame with no model edges around it keeps the
+(`block.anchoring`) keeps its prior; a frame with no model edges around it keeps the
 adjusted pose and its covariance (the units decide whether it is determined well enough). A
 frame in two windows takes the pose of the one where it lies further from the window's ends.
 """
@@ -94,7 +94,7 @@ class SequenceOrientation:
         blocks: per window `{"frames": [first, last], "accepted": bool, "reason": str,
             "frames_anchored": int, "frames_without_edges_around": int, "mean_edge_support":
             float | None, "null_support": float | None, "sigma0": float, "tracks": int,
-            "tie_observations": int}` (`coregister_block.anchoring`).
+            "tie_observations": int}` (`block.anchoring`).
         tracks: the tie observations of each frame from the window its pose came from (track
             points as adjusted, ids unique; the overlapping windows tracked the same points).
         ties, tie_rms_px: inlier tie observations of each oriented frame and their RMS (px).
