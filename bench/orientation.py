@@ -14,12 +14,17 @@ Prints JSON with, per platform (`drive`, `flight`; synthetic sequences of `cityt
 3. optionally (`--texture`) the texture accuracy of `citytherm run` with refinement on that
    sequence (written as CityGML and a sequence package) and on a drive around the bundled
    Berlin model (bars RMSE ≤ 0.45 K, misregistration ≤ 0.5 texel);
-4. time per frame and building of `refine_building` (frames pre-rendered in memory), median;
-   all of the orientation per (frame, building) pair: the sequence orientation (drives, once per
-   frame) with the units, and with the calibration too (once per sequence on at most 40 frames,
-   so it weighs far more on these short sequences than on real ones);
+4. time per frame and building of the units' refinement (frames pre-rendered in memory),
+   median; all of the orientation per (frame, building) pair: the sequence orientation (drives,
+   once per frame) with the units, and with the calibration too (once per sequence on at most 40
+   frames, so it weighs far more on these short sequences than on real ones);
 5. for drives, the tie points of the sequence orientation against the truth (median error,
    share within 1 px).
+
+The poses come from the stages `citytherm run` ships (`workers.job`: calibrate, orient when
+the calibration is accepted and the platform is close-range, plan; then each unit's refinement,
+`units.refine_unit`), on frames held in memory; only the pairs evaluated (frames whose true pose
+sees the building) are the bench's own choice.
 
 Usage: `python bench/orientation.py [--frames 40] [--buildings 3] [--seed 1] [--texture]`.
 """
@@ -37,31 +42,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from workers import job
+from workers.pipeline.geometry.citymodel import ModelHeader
 from workers.pipeline.geometry.georef import prior_poses
+from workers.pipeline.geometry.manifest import MemoryFrames
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import pose_delta
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.orientation.building import CoregisterOptions, calibrated_options, refine_building
-from workers.pipeline.orientation.calibration import (
-    apply_calibration,
-    calibrate_sequence,
-    calibrated_accuracy,
-)
+from workers.pipeline.orientation.building import CoregisterOptions
 from workers.pipeline.orientation.quality import edge_points, tie_errors
 from workers.pipeline.orientation.quality import reprojection_rms as quality_rms
-from workers.pipeline.orientation.sequence import SEQUENCE_PLATFORMS, orient_sequence
 from workers.pipeline.orientation.wireframe import building_wireframe, visible_wireframe
+from workers.pipeline.plan import near_buildings
 from workers.pipeline.synth import ErrorOptions, SynthOptions, procedural_block, synthesize
-
-
-class MemorySource:
-    """Pre-rendered frames (a `FrameSource`), so that timings measure orientation only."""
-
-    def __init__(self, frames: list[np.ndarray]) -> None:
-        self.frames = frames
-
-    def load(self, index: int) -> np.ndarray:
-        return self.frames[index]
+from workers.pipeline.units import UnitOptions, refine_unit, unit_raycaster
 
 
 def reprojection_rms(camera, pts: np.ndarray, pose: Pose, truth: Pose) -> float:
@@ -87,72 +81,80 @@ def scene(platform: str, frames: int, buildings: int, seed: int, errors: bool):
     return res, imgs
 
 
-def run(res, imgs, priors: list[Pose], options: CoregisterOptions, calibrate: bool = True) -> dict:
-    """Calibrate the sequence and, for drives, orient it in blocks (as `citytherm run` does), then
-    refine every cluster building over every frame that sees it; errors per pair."""
+def ingested(res, imgs, priors: list[Pose], options: job.RunOptions) -> job.Ingested:
+    """What the ingest stage gives for the synthetic sequence, with its frames in memory (so that
+    timings measure orientation only) and `priors` in place of the manifest's."""
+    m = res.manifest
+    reach = min(options.plan.max_distance_m, options.unit.visibility.max_distance_m)
+    near, _ = near_buildings(res.buildings, priors, reach)
+    return job.Ingested(
+        city_gml=Path("<synthetic>"), package_dir=Path("<memory>"), header=ModelHeader("2.0"), manifest=m,
+        frames=MemoryFrames(imgs), priors=tuple(priors), buildings=tuple(near),
+        n_model_buildings=len(res.buildings), radiometry=m.radiometry,
+    )
+
+
+def run(res, imgs, priors: list[Pose], options: CoregisterOptions) -> dict:
+    """Calibrate the sequence and, where `citytherm run` does, orient it in blocks; plan the
+    cluster's units and run their refinement; errors per pair (frames whose true pose sees the
+    building's edges)."""
     cam = res.manifest.camera
-    caster = RayCaster(res.mesh)
-    times = {i: f.time for i, f in enumerate(res.manifest.frames)}
-    src = MemorySource(imgs)
-    pairs = []
-    per_frame_ms = []
+    opts = job.RunOptions(unit=UnitOptions(refine=options), buildings=tuple(res.truth.cluster))
+    ing = ingested(res, imgs, priors, opts)
+    caster = job.scene_caster(ing)
+    n = len(imgs)
     seconds = {"calibrate": 0.0, "orient": 0.0, "units": 0.0}
-    accuracy = res.manifest.accuracy
-    calib: dict = {"run": False}
-    original = list(priors)
-    if calibrate:
+    t0 = time.perf_counter()
+    calibrated = job.calibrate(ing, opts, caster)
+    seconds["calibrate"] = time.perf_counter() - t0
+    calib = {"run": True, **calibrated.calibration.to_dict(),
+             "ms_per_frame": round(1000 * seconds["calibrate"] / n, 1)}
+    t0 = time.perf_counter()
+    oriented = job.orient(ing, calibrated, opts, caster=caster)
+    seconds["orient"] = time.perf_counter() - t0
+    orient = dict(oriented.report)
+    caster = RayCaster(res.mesh)  # the whole rendered scene: the truth's visibility
+    if oriented.orientation is not None:
+        orient["ms_per_frame"] = round(1000 * seconds["orient"] / n, 1)
+        orient["tie_points"] = tie_quality(oriented.orientation.tracks, cam, res.truth.poses, caster)
+    planned = job.plan(ing, calibrated, oriented, opts)
+    pairs, per_frame_ms = [], []
+    for unit in planned.units:
+        rc = unit_raycaster(unit)
         t0 = time.perf_counter()
-        frames = list(range(len(imgs)))
-        cal = calibrate_sequence(cam, caster, frames, src, dict(enumerate(priors)), times, accuracy)
-        seconds["calibrate"] = time.perf_counter() - t0
-        calib = {"run": True, **cal.to_dict(),
-                 "ms_per_frame": round(1000 * seconds["calibrate"] / len(frames), 1)}
-        priors = apply_calibration(priors, [times[i] for i in frames], cal)
-        accuracy = calibrated_accuracy(cal, prior=accuracy)
-        if cal.accepted:
-            options = calibrated_options(options)
-    seq = None
-    orient: dict = {"run": False}
-    if res.manifest.platform in SEQUENCE_PLATFORMS:
-        t0 = time.perf_counter()
-        frames = list(range(len(imgs)))
-        seq = orient_sequence(cam, caster, frames, src, dict(enumerate(priors)), times, accuracy)
-        seconds["orient"] = time.perf_counter() - t0
-        orient = {"run": True, **seq.to_dict(),
-                  "ms_per_frame": round(1000 * seconds["orient"] / len(frames), 1),
-                  "tie_points": tie_quality(seq.tracks, cam, res.truth.poses, caster)}
-    for b in res.buildings:
-        if b.id not in res.truth.cluster:
-            continue
-        pts = edge_points(b)
-        seen = [i for i in range(len(imgs)) if np.isfinite(reprojection_rms(cam, pts, res.truth.poses[i],
-                                                                            res.truth.poses[i]))]
-        if not seen:
-            continue
-        prior = {i: priors[i] for i in seen}
-        wf = building_wireframe(b, options.edges)
-        edges_seen = {
-            i: visible_wireframe(wf, cam, res.truth.poses[i], caster, options.edges).n_edges for i in seen
-        }
-        t0 = time.perf_counter()
-        out = refine_building(cam, b, caster, seen, src, prior, accuracy, options, times,
-                              seq.for_frames(seen) if seq is not None else None)
+        _, records = refine_unit(unit, rc)
         seconds["units"] += time.perf_counter() - t0
-        per_frame_ms.append(1000 * (time.perf_counter() - t0) / len(seen))
-        for i in seen:
-            T = res.truth.poses[i]
-            d = pose_delta(T, out[i].pose)
-            pairs.append({
-                "before": reprojection_rms(cam, pts, original[i], T),
-                "calibrated": reprojection_rms(cam, pts, prior[i], T),
-                "after": reprojection_rms(cam, pts, out[i].pose, T),
-                "status": out[i].status,
-                "pos_err": float(np.linalg.norm(d[3:])),
-                "rot_err_deg": float(np.degrees(np.linalg.norm(d[:3]))),
-                "visible_edges": edges_seen[i],
-            })
+        per_frame_ms.append(1000 * (time.perf_counter() - t0) / len(unit.frames))
+        records_of = {r.frame: r for r in records}
+        pairs += evaluate(res, unit.building, records_of, priors, calibrated.priors, caster, options)
     return {"pairs": pairs, "per_frame_ms": per_frame_ms, "calibration": calib, "orientation": orient,
             "seconds": seconds}
+
+
+def evaluate(res, building, records: dict, original, calibrated, caster, options) -> list[dict]:
+    """Per frame whose true pose sees the building's edge points: the reprojection RMS of its
+    edges at the original prior, the calibrated prior and the unit's pose (a frame the plan
+    did not give the unit keeps its calibrated prior: status "unplanned"), pose errors."""
+    cam = res.manifest.camera
+    pts = edge_points(building)
+    wf = building_wireframe(building, options.edges)
+    out = []
+    for i, T in enumerate(res.truth.poses):
+        if not np.isfinite(reprojection_rms(cam, pts, T, T)):
+            continue
+        r = records.get(i)
+        pose, status = (r.pose, r.status) if r is not None else (calibrated[i], "unplanned")
+        d = pose_delta(T, pose)
+        out.append({
+            "before": reprojection_rms(cam, pts, original[i], T),
+            "calibrated": reprojection_rms(cam, pts, calibrated[i], T),
+            "after": reprojection_rms(cam, pts, pose, T),
+            "status": status,
+            "pos_err": float(np.linalg.norm(d[3:])),
+            "rot_err_deg": float(np.degrees(np.linalg.norm(d[:3]))),
+            "visible_edges": visible_wireframe(wf, cam, T, caster, options.edges).n_edges,
+        })
+    return out
 
 
 def tie_quality(tracks, camera, truth: list[Pose], caster: RayCaster) -> dict:
@@ -313,9 +315,10 @@ def texture_run(platform: str, frames: int, buildings: int, seed: int, model: st
     orientation figures against the truth, and the same run without refinement for comparison."""
     from db.citygml.reader import read_model
     from db.citygml.writer import write_citygml
-    from services.runner import RunOptions, run_job
-    from services.synth_eval import orientation_accuracy, texture_accuracy
-    from workers.pipeline.synth import BUNDLED_MODEL, write_synthetic_package
+    from db.synth_files import write_synthetic_package
+    from workers.pipeline.synth import BUNDLED_MODEL
+    from workers.run import run_job
+    from workers.synth_eval import orientation_accuracy, texture_accuracy
 
     root = Path(tempfile.mkdtemp(prefix="citytherm-bench-orientation-"))
     if model == "berlin":
@@ -335,7 +338,8 @@ def texture_run(platform: str, frames: int, buildings: int, seed: int, model: st
     for refine in (True, False):
         dest = root / ("refined" if refine else "prior")
         t0 = time.perf_counter()
-        run_job(gml, pkg, dest, RunOptions(resolution_px_per_m=resolution, refine=refine, display=False))
+        options = job.RunOptions.build(resolution_px_per_m=resolution, refine=refine, display=False)
+        run_job(gml, pkg, dest, options)
         wall = time.perf_counter() - t0
         acc = texture_accuracy(dest, res)
         acc.update(orientation_accuracy(dest, res))
