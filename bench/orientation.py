@@ -132,9 +132,10 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions) -> dict:
 
 
 def evaluate(res, building, records: dict, original, calibrated, caster, options) -> list[dict]:
-    """Per frame whose true pose sees the building's edge points: the reprojection RMS of its
-    edges at the original prior, the calibrated prior and the unit's pose (a frame the plan
-    did not give the unit keeps its calibrated prior: status "unplanned"), pose errors."""
+    """Per frame whose true pose sees the building's edge points (occluded or not): the
+    reprojection RMS of its edges at the original prior, the calibrated prior and the unit's pose
+    (a frame the plan did not give the unit: status "unplanned", at its calibrated prior), pose
+    errors, and how many model edges the true view shows (hidden-edge removal)."""
     cam = res.manifest.camera
     pts = edge_points(building)
     wf = building_wireframe(building, options.edges)
@@ -176,9 +177,13 @@ def _r(x, refined) -> float | None:
 
 
 def summary(r: dict) -> dict:
-    p = r["pairs"]
+    """Figures over the (frame, building) pairs the plan gives the units and whose true pose sees
+    the building's edge points; the pairs the true pose sees but the plan did not give the
+    building (its ray test found it hidden behind others) are counted apart."""
+    p = [x for x in r["pairs"] if x["status"] != "unplanned"]
+    unplanned = [x for x in r["pairs"] if x["status"] == "unplanned"]
     if not p:
-        return {"pairs": 0}
+        return {"pairs": 0, "pairs_not_planned": len(unplanned)}
     before = np.array([x["before"] for x in p])
     after = np.array([x["after"] for x in p])
     refined = np.array([x["status"] == "refined" for x in p])
@@ -186,6 +191,8 @@ def summary(r: dict) -> dict:
     rot = np.array([x["rot_err_deg"] for x in p])
     out = {
         "pairs": len(p),
+        "pairs_not_planned": len(unplanned),
+        "pairs_not_planned_with_2+_visible_model_edges": sum(x["visible_edges"] >= 2 for x in unplanned),
         "efficiency": round(float(np.mean(after < before)), 3),
         "share_below_1px": round(float(np.mean(after < 1.0)), 3),
         "share_refined": round(float(np.mean(refined)), 3),
