@@ -141,16 +141,6 @@ class Renderer:
         return (img + rng.normal(0, self.noise_k, img.shape)).astype(np.float32)
 
 
-class ArraySource:
-    """A `FrameSource` over pre-rendered frames (index -> array)."""
-
-    def __init__(self, frames: dict[int, np.ndarray]) -> None:
-        self.frames = frames
-
-    def load(self, index: int) -> np.ndarray:
-        return self.frames[index]
-
-
 def drive_poses(start: np.ndarray, heading: np.ndarray, n: int, step_m: float = 0.8,
                 forward_deg: float = 25.0, up_deg: float = 12.0) -> list[Pose]:
     """Side-looking drive: camera at `start` moving along the horizontal `heading`, looking right,

@@ -9,7 +9,13 @@ import pytest
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.georef import prior_poses
-from workers.pipeline.geometry.manifest import FrameRecord, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.manifest import (
+    FrameRecord,
+    MemoryFrames,
+    Mounting,
+    Radiometry,
+    SequenceManifest,
+)
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import pose_delta, so3_exp
 from workers.pipeline.geometry.raycast import RayCaster
@@ -29,16 +35,6 @@ from workers.pipeline.orientation.mounting import (
 from workers.pipeline.synth import ErrorOptions, SynthOptions, SynthResult, procedural_block, synthesize
 
 N_FRAMES = 40  # 30 frames leave too few frames seeing edges for the +5 m start (bench: 40)
-
-
-class ListSource:
-    """In-memory `FrameSource`."""
-
-    def __init__(self, frames: list[np.ndarray]) -> None:
-        self.frames = frames
-
-    def load(self, index: int) -> np.ndarray:
-        return self.frames[index]
 
 
 Drive = tuple[SynthResult, list[np.ndarray], RayCaster, dict[int, float]]
@@ -68,7 +64,7 @@ def calibrate(
     """Calibrate `priors` over all frames (`frames` replace the rendered ones); calibrated priors."""
     res, imgs, caster, times = drive
     n = len(priors)
-    cal = calibrate_sequence(res.manifest.camera, caster, list(range(n)), ListSource(frames or imgs),
+    cal = calibrate_sequence(res.manifest.camera, caster, list(range(n)), MemoryFrames(frames or imgs),
                              dict(enumerate(priors)), times, res.manifest.accuracy)
     return cal, apply_calibration(priors, [times[i] for i in range(n)], cal)
 

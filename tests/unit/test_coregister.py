@@ -7,14 +7,13 @@ import pytest
 
 from tests.unit.orientation_scenes import (
     CAMERA,
-    ArraySource,
     Renderer,
     box_building,
     look_at,
     perturb,
     reprojection_rms,
 )
-from workers.pipeline.geometry.manifest import Accuracy
+from workers.pipeline.geometry.manifest import Accuracy, MemoryFrames
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, project_jacobian
 from workers.pipeline.geometry.raycast import RayCaster
@@ -70,7 +69,7 @@ def test_prior_information_is_symmetric_positive_and_scaled():
 
 def test_sequence_with_position_and_attitude_errors_is_refined_below_a_pixel(scene):
     truth, prior, frames = _drive(scene, 5, [2.0, -1.5, 1.0], [1.0, -0.5, 0.5], noise=0.2)
-    out = refine_building(CAMERA, B1, scene.caster, list(frames), ArraySource(frames), prior, ACC,
+    out = refine_building(CAMERA, B1, scene.caster, list(frames), MemoryFrames(frames), prior, ACC,
                           times={i: 0.1 * i for i in frames})
     assert set(out) == set(frames)
     for i, rp in out.items():
@@ -88,7 +87,7 @@ def test_sequence_with_position_and_attitude_errors_is_refined_below_a_pixel(sce
 
 def test_grossly_wrong_prior_is_rejected_not_refined(scene):
     _truth, prior, frames = _drive(scene, 1, [20.0, 0.0, 0.0], [0.0, 0.0, 0.0])
-    out = refine_building(CAMERA, B1, scene.caster, [0], ArraySource(frames), prior, ACC)
+    out = refine_building(CAMERA, B1, scene.caster, [0], MemoryFrames(frames), prior, ACC)
     assert out[0].status == "prior"
     assert out[0].pose is prior[0]
 
@@ -98,7 +97,7 @@ def test_frame_without_visible_corners_keeps_a_sane_pose(scene):
     truth = {0: look_at([10.0, -9.0, 2.2], [10.0, 0.0, 9.5])}
     frames = {0: scene.render(truth[0], 7)}
     prior = {0: perturb(truth[0], [0.3, -0.3, 0.2], [0.3, 0.2, 0.0])}
-    out = refine_building(CAMERA, B1, scene.caster, [0], ArraySource(frames), prior, ACC)
+    out = refine_building(CAMERA, B1, scene.caster, [0], MemoryFrames(frames), prior, ACC)
     before = reprojection_rms(CAMERA, B1, prior[0], truth[0])
     after = reprojection_rms(CAMERA, B1, out[0].pose, truth[0])
     assert np.isfinite(after)
@@ -141,7 +140,8 @@ def test_synthetic_flight_with_default_errors_is_refined_below_a_pixel(synth_fli
     cluster = [b for b in res.buildings if b.id in res.truth.cluster]
     assert len(cluster) == 3
     for b in cluster:
-        out = refine_building(cam, b, caster, list(frames), ArraySource(frames), prior, res.manifest.accuracy,
+        source = MemoryFrames(frames)
+        out = refine_building(cam, b, caster, list(frames), source, prior, res.manifest.accuracy,
                               times=times)
         for i, rp in out.items():
             before = reprojection_rms(cam, b, prior[i], res.truth.poses[i])
@@ -165,7 +165,8 @@ def test_synthetic_drive_is_never_refined_into_a_wrong_pose():
     for b in res.buildings:
         if b.id not in res.truth.cluster:
             continue
-        out = refine_building(cam, b, caster, list(frames), ArraySource(frames), prior, res.manifest.accuracy)
+        source = MemoryFrames(frames)
+        out = refine_building(cam, b, caster, list(frames), source, prior, res.manifest.accuracy)
         for i, rp in out.items():
             if rp.status == "prior":
                 assert rp.pose is prior[i]
@@ -197,7 +198,7 @@ def _drive_pairs(res, frames, prior) -> list[tuple[float, float, str]]:
             continue
         truth = res.truth.poses
         seen = [i for i in frames if np.isfinite(reprojection_rms(cam, b, truth[i], truth[i]))]
-        out = refine_building(cam, b, caster, seen, ArraySource(frames), {i: prior[i] for i in seen},
+        out = refine_building(cam, b, caster, seen, MemoryFrames(frames), {i: prior[i] for i in seen},
                               res.manifest.accuracy, times=times)
         for i in seen:
             pairs.append((reprojection_rms(cam, b, prior[i], res.truth.poses[i]),
@@ -252,7 +253,7 @@ def _calibrated_pairs(res, frames, prior) -> tuple[list[tuple[float, float, str]
     caster = RayCaster(res.mesh)
     order = sorted(frames)
     times = {i: f.time for i, f in enumerate(res.manifest.frames)}
-    cal = calibrate_sequence(cam, caster, order, ArraySource(frames), prior, times, res.manifest.accuracy)
+    cal = calibrate_sequence(cam, caster, order, MemoryFrames(frames), prior, times, res.manifest.accuracy)
     cp = dict(zip(order, apply_calibration([prior[i] for i in order], [times[i] for i in order], cal),
                   strict=True))
     acc = calibrated_accuracy(cal, prior=res.manifest.accuracy)
@@ -263,7 +264,7 @@ def _calibrated_pairs(res, frames, prior) -> tuple[list[tuple[float, float, str]
         if b.id not in res.truth.cluster:
             continue
         seen = [i for i in order if np.isfinite(reprojection_rms(cam, b, truth[i], truth[i]))]
-        out = refine_building(cam, b, caster, seen, ArraySource(frames), {i: cp[i] for i in seen}, acc,
+        out = refine_building(cam, b, caster, seen, MemoryFrames(frames), {i: cp[i] for i in seen}, acc,
                               opts, times=times)
         pairs += [(reprojection_rms(cam, b, prior[i], truth[i]),
                    reprojection_rms(cam, b, out[i].pose, truth[i]), out[i].status) for i in seen]

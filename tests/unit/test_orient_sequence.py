@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import workers.pipeline.orientation.sequence as orient_module
-from tests.unit.orientation_scenes import ArraySource, perturb, reprojection_rms
-from workers.pipeline.geometry.manifest import Accuracy
+from tests.unit.orientation_scenes import perturb, reprojection_rms
+from workers.pipeline.geometry.manifest import Accuracy, MemoryFrames
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.block import UnitSequence, refine_from_sequence
@@ -71,7 +71,7 @@ def test_drive_is_oriented_below_a_pixel(drive, window: int, overlap: int) -> No
     # where they lie furthest from the ends)
     res, images, prior, times, caster = drive
     before = _pairs(res, prior)
-    so = orient_sequence(res.manifest.camera, caster, list(range(N)), ArraySource(images), prior, times, ACC,
+    so = orient_sequence(res.manifest.camera, caster, list(range(N)), MemoryFrames(images), prior, times, ACC,
                          SequenceOrientationOptions(window_frames=window, overlap_frames=overlap))
     assert len(so.blocks) == (1 if window >= N else 2)
     after = _pairs(res, so.poses)
@@ -87,7 +87,7 @@ def test_drive_is_oriented_below_a_pixel(drive, window: int, overlap: int) -> No
 @pytest.fixture(scope="module")
 def oriented(drive):
     res, images, prior, times, caster = drive
-    so = orient_sequence(res.manifest.camera, caster, list(range(N)), ArraySource(images), prior, times, ACC,
+    so = orient_sequence(res.manifest.camera, caster, list(range(N)), MemoryFrames(images), prior, times, ACC,
                          SequenceOrientationOptions(window_frames=16, overlap_frames=8))
     return so
 
@@ -137,7 +137,7 @@ def test_units_reject_what_the_sequence_leaves_open_or_the_building_contradicts(
     wrong = UnitSequence(off, part.covariance, part.ties, part.tie_rms_px)
     out, reason = refine_from_sequence(cam, building_wireframe(b), caster, seen, images, prior, wrong)
     assert reason and all(out[i].status == "prior" for i in seen)
-    got = refine_building(cam, b, caster, seen, ArraySource(images), {i: prior[i] for i in seen}, ACC,
+    got = refine_building(cam, b, caster, seen, MemoryFrames(images), {i: prior[i] for i in seen}, ACC,
                           CoregisterOptions(), times, wrong)
     assert not any(got[i].pose is off[i] for i in seen)
 
@@ -162,7 +162,7 @@ def test_frames_without_the_model_keep_their_priors(drive) -> None:
     rng = np.random.default_rng(1)
     shape = (res.manifest.camera.height, res.manifest.camera.width)
     blank = {i: (280.0 + rng.normal(0, 0.05, shape)).astype(np.float32) for i in range(N)}
-    so = orient_sequence(res.manifest.camera, caster, list(range(N)), ArraySource(blank), prior, times, ACC)
+    so = orient_sequence(res.manifest.camera, caster, list(range(N)), MemoryFrames(blank), prior, times, ACC)
     assert not any(b["accepted"] for b in so.blocks)
     assert so.oriented == [] and all(so.poses[i] is prior[i] for i in range(N))
     assert so.tracks.n_tracks == 0
