@@ -10,7 +10,8 @@ Modules and their entry points:
 - `pose_increments`: rotation vectors (`so3_exp`, `so3_log`), pose corrections
   (`pose_delta`, `apply_delta`), step bounds and the projection Jacobian (`project_jacobian`).
 - `georef`: direct georeferencing, GNSS/INS solution + mounting -> camera poses (`prior_poses`).
-- `crs`: CRS names as written in CityGML and manifests -> pyproj (`resolve_crs`, `horizontal_epsg`).
+- `crs`: CRS names as written in CityGML and manifests -> pyproj (`resolve_crs`, `horizontal_epsg`);
+  `transform`: model coordinates into another CRS, heights kept (`CrsTransform`, `transform_building`).
 - `polygons`: plane fit, local surface frames, triangulation (`fit_plane`, `triangulate`).
 - `raycast`: the triangulated city model and ray casting through it (`build_scene_mesh`, `RayCaster`).
 - `citymodel`: the city model's domain types (`Building`, `Polygon`, `Appearance`, ...).
