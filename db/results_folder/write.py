@@ -205,6 +205,20 @@ def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
     }
 
 
+def radiometry_document(radiometry: Radiometry | None) -> dict[str, Any]:
+    """`report.json`'s `radiometry` member (the tiles' `value = DN · scale + offset` in `unit`);
+    empty when not known (a job without results)."""
+    if radiometry is None:
+        return {}
+    return {
+        "radiometry": {
+            "unit": radiometry.unit,
+            "scale": float(radiometry.scale),
+            "offset": float(radiometry.offset),
+        }
+    }
+
+
 def value_range(results: Sequence[BuildingResult]) -> tuple[float, float]:
     """Display range of a job: 5th percentile of the surfaces' p05, 95th of their p95."""
     lo = [s.temperature["p05"] for r in results for s in r.surfaces if s.temperature]
@@ -233,6 +247,7 @@ def write_results_folder(
     progress: Callable[[int, int], None] | None = None,
     write_time_offset_s: float = 0.0,
     started: float | None = None,
+    radiometry: Radiometry | None = None,
 ) -> dict[str, Any]:
     """Write a whole results folder (`docs/results-format.md`) from building results: the
     in-process run and the service (results loaded from the database) share it.
@@ -243,7 +258,10 @@ def write_results_folder(
     `priors` are the manifest-only priors; `mounting` the estimated mounting for
     `orientation.json` (None: the manifest's, delay 0) and `calibration` the report's
     `calibration` block (None: `{"run": false}`). `texel` (the units' texel-grid options) goes
-    into the report whole, so that readers lay the same grids. Returns the `report.json` document.
+    into the report whole, so that readers lay the same grids. `radiometry` (the tiles'; default:
+    the results') goes into the report as `radiometry` (unit, scale, offset), so that the tiles
+    keep their physical meaning when the folder is read back (`db.results_import`). Returns the
+    `report.json` document.
     """
     t0 = started if started is not None else time.perf_counter()
     out = Path(out_dir)
@@ -283,6 +301,7 @@ def write_results_folder(
         "frames": len(manifest.frames),
         "buildings_processed": len(results),
         "buildings_textured": sum(1 for r in results if r.appearance is not None),
+        **radiometry_document(radiometry or next((r.radiometry for r in results), None)),
         **dict(job or {}),
         "calibration": dict(calibration) if calibration is not None else {"run": False},
         "timings_s": dict(timings),
