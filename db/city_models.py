@@ -153,8 +153,7 @@ def delete_city_model(db: Engine | Any, model: str | int) -> DeletedModel:
         m = find_model(conn, model, lock="FOR UPDATE")
         busy = conn.execute(
             text(
-                "SELECT id, status FROM job WHERE city_model_id = :m AND status = ANY(:s) "
-                "ORDER BY created_at"
+                "SELECT id, status FROM job WHERE city_model_id = :m AND status = ANY(:s) ORDER BY created_at"
             ),
             {"m": m["id"], "s": list(ACTIVE_JOB_STATES)},
         ).all()

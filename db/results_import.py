@@ -129,9 +129,7 @@ def check_folder_against_model(conn: Connection, model: Mapping[str, Any], rf: R
             )
 
 
-def _open_job(
-    session: Session, *, job_id: uuid.UUID, model: Mapping[str, Any], rf: ResultsFolder
-) -> bool:
+def _open_job(session: Session, *, job_id: uuid.UUID, model: Mapping[str, Any], rf: ResultsFolder) -> bool:
     """Create the job (or take up the existing one of this folder) with a unit per building, and
     set it running; returns True when it was created."""
     conn = session.connection()
@@ -142,8 +140,13 @@ def _open_job(
     ).first()
     created = row is None
     if created:
-        create_job(session, model_id=model["id"], theme=rf.theme, options=rf.report.get("options") or {},
-                   job_id=job_id)  # fmt: skip
+        create_job(
+            session,
+            model_id=model["id"],
+            theme=rf.theme,
+            options=rf.report.get("options") or {},
+            job_id=job_id,
+        )
     elif row[0] != model["id"]:
         raise InputDataError(f"job {job_id} belongs to city model {row[0]}, not to {model['name']!r}")
     elif row[1] not in ("accepted", "running"):
@@ -209,8 +212,10 @@ def _close_job(session: Session, *, job_id: uuid.UUID, rf: ResultsFolder) -> tup
     ]
     if stale:
         _delete_building_rows(conn, job_id, stale)
-        conn.execute(text("DELETE FROM job_unit WHERE job_id = :j AND building_id = ANY(:b)"),
-                     {"j": job_id, "b": stale})  # fmt: skip
+        conn.execute(
+            text("DELETE FROM job_unit WHERE job_id = :j AND building_id = ANY(:b)"),
+            {"j": job_id, "b": stale},
+        )
     failed_ids = [b for b, _ in rf.failed]
     if failed_ids:  # a failure of this run replaces a success of an earlier one
         rows = [

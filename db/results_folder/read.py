@@ -159,8 +159,12 @@ class ResultsFolder:
         ids = {s.polygon_id for s in self._surfaces[building_id]}
         app = self.appearances.get(building_id)
         if app is not None:
-            ids |= {t.polygon_id for sd in app.surface_data if isinstance(sd, ParameterizedTexture)
-                    for t in sd.targets}  # fmt: skip
+            ids |= {
+                t.polygon_id
+                for sd in app.surface_data
+                if isinstance(sd, ParameterizedTexture)
+                for t in sd.targets
+            }
         ids |= {a.polygon_id for a in self._anomalies.get(building_id, ()) if a.polygon_id}
         return ids
 
@@ -329,9 +333,7 @@ def _safe_tile_name(name: str, where: str) -> str:
     return name
 
 
-def _job_appearances(
-    path: Path, theme: str, tiles_of: dict[str, set[str]]
-) -> dict[str, Appearance]:
+def _job_appearances(path: Path, theme: str, tiles_of: dict[str, set[str]]) -> dict[str, Appearance]:
     """The job's appearance of each processed building in `textured.gml`: of `theme`, its images
     among the building's tiles in `report.json` (an appearance of the same theme that came with
     the input model, e.g. an earlier job's exported textures, is not the job's)."""
