@@ -14,7 +14,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -132,10 +132,13 @@ def run_job(
     progress: Progress = no_progress,
     *,
     refiner: Refiner | None = None,
+    on_result: Callable[[BuildingResult], None] | None = None,
 ) -> RunSummary:
     """Texture the buildings of `city_gml` seen by the sequence `package`; write the results
     folder `out_dir` (created; existing result files are overwritten). Stage wall times go into
-    the summary and `report.json`."""
+    the summary and `report.json`. `on_result` is called with each building's result, tile
+    pixels included, as it finishes (its tiles are written by then; the results folder's other
+    files come at the end)."""
     timings: dict[str, float] = {}
     with open_package(package) as pkg:  # an archive stays extracted for the job's duration
         t0 = time.perf_counter()
@@ -182,6 +185,8 @@ def run_job(
                 for tile in r.tiles:
                     write_tile(out, tile)
                 tiles_written += time.perf_counter() - t1
+                if on_result is not None:
+                    on_result(r)
                 results.append(without_pixels(r))  # pixels are on disk: keep the job's memory small
             progress("units", k + 1, len(planned.units))
         timings["units"] = time.perf_counter() - t0 - tiles_written

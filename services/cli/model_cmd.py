@@ -1,10 +1,17 @@
-"""`citytherm model ...`: look at and convert CityGML city models.
+"""`citytherm model ...`: look at and convert CityGML city models, list and delete the models of
+the database.
 
 - `citytherm model info FILE.gml` prints a summary table: CityGML version, CRS (as written and
   resolved), buildings, parts, polygons by semantic class and by LoD, and the geometry checks that
   failed (streamed: works on files of any size).
 - `citytherm model convert IN.gml OUT.gml` writes the model as CityGML 2.0 (ids, appearances
   kept), optionally validating the result against the schemas.
+- `citytherm model list` prints the database's city models: name, id, CRS and SRID, buildings,
+  parts, state, appearance themes with their number of appearances, jobs by status (`--json`
+  for scripts).
+- `citytherm model delete NAME` deletes a model with its appearances, textures and jobs in one
+  transaction (`db.city_models.delete_city_model`), refused while one of its jobs is accepted or
+  running.
 """
 
 from __future__ import annotations
@@ -18,6 +25,9 @@ from rich.table import Table
 
 from db.citygml import CityGMLError, open_model, validate_citygml2, write_citygml
 from db.citygml.checks import CheckOptions, check_building
+from db.settings import get_settings
+from services.cli.db_cmd import DbUrl
+from services.cli.results_cmd import database_error
 
 model_app = typer.Typer(help="Inspect and convert CityGML city models.", no_args_is_help=True)
 
@@ -123,6 +133,89 @@ def convert(
                 console.print(f"[red]invalid:[/red] {e}")
             raise typer.Exit(code=2)
         console.print("valid against the CityGML 2.0 schemas")
+
+
+def _counts(counts: dict[str, int]) -> str:
+    """`{"a": 2, "b": 1}` -> `a (2), b (1)`."""
+    return ", ".join(f"{k} ({n})" for k, n in counts.items()) or "none"
+
+
+@model_app.command("list")
+def list_cmd(
+    as_json: bool = typer.Option(False, "--json", help="Print the list as JSON."),
+    database_url: str | None = DbUrl,
+) -> None:
+    """The city models of the database with their appearance themes and jobs."""
+    import json
+
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from db.city_models import list_models
+
+    console = Console()
+    try:
+        models = list_models(database_url or get_settings().database_url)
+    except SQLAlchemyError as exc:
+        console.print(f"[red]error:[/red] {database_error(exc)}")
+        raise typer.Exit(code=1) from None
+    if as_json:
+        doc = [
+            {
+                "name": m.name,
+                "id": m.id,
+                "srs_name": m.srs_name,
+                "srid": m.srid,
+                "buildings": m.buildings,
+                "parts": m.parts,
+                "surfaces": m.surfaces,
+                "state": m.state,
+                "imported_at": m.imported_at.isoformat() if m.imported_at is not None else None,
+                "themes": m.themes,
+                "jobs": m.jobs,
+            }
+            for m in models
+        ]
+        typer.echo(json.dumps(doc, indent=1))
+        return
+    # one block per model: readable in a terminal of any width, however many themes
+    if not models:
+        console.print("no city models in the database")
+    for m in models:
+        crs = f"{m.srs_name or '(none)'} (SRID {m.srid})"
+        console.print(f"[bold]{m.name}[/bold]  id {m.id}, {m.state}, CRS {crs}")
+        console.print(f"  {m.buildings} buildings, {m.parts} parts, {m.surfaces} surfaces")
+        console.print(f"  themes: {_counts(m.themes)}")
+        console.print(f"  jobs: {_counts(m.jobs)}")
+
+
+@model_app.command("delete")
+def delete_cmd(
+    name: str = typer.Argument(..., help="Model name (or id)."),
+    yes: bool = typer.Option(False, "--yes", "-y", help="Do not ask for confirmation."),
+    database_url: str | None = DbUrl,
+) -> None:
+    """Delete a city model of the database with its appearances, textures and jobs (refused while
+    one of its jobs is accepted or running)."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from db.city_models import delete_city_model
+    from db.errors import CityDBError
+
+    console = Console()
+    if not yes:
+        typer.confirm(f"delete city model {name!r} with its appearances, textures and jobs?", abort=True)
+    try:
+        d = delete_city_model(database_url or get_settings().database_url, name)
+    except CityDBError as exc:
+        console.print(f"[red]not deleted:[/red] {exc}")
+        raise typer.Exit(code=1) from None
+    except SQLAlchemyError as exc:
+        console.print(f"[red]error:[/red] {database_error(exc)}")
+        raise typer.Exit(code=1) from None
+    console.print(
+        f"deleted city model [bold]{d.name}[/bold] (id {d.id}): {d.buildings} buildings, "
+        f"{d.appearances} appearances, {d.images} texture images, {d.jobs} jobs in {d.seconds:.1f} s"
+    )
 
 
 def register(root: typer.Typer) -> None:

@@ -1,5 +1,12 @@
 """`citytherm run CITY.gml PACKAGE -o OUT/`: a whole texturing job in one process (or a local
-process pool), with a progress bar per stage and a closing summary table."""
+process pool), with a progress bar per stage and a closing summary table.
+
+With `--database` the results also go into the city model database, into the model `--model`
+(default: the file's stem, as `citytherm import` names it; imported first when the database lacks
+it, before the job runs). They are stored once the results folder is complete, by the same
+function as `citytherm results import OUT/` (`db.results_import.import_results`: one transaction
+per building, a job id derived from the model and the folder), so both give the same rows and a
+re-run replaces them."""
 
 from __future__ import annotations
 
@@ -11,6 +18,9 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from db.settings import get_settings
+from services.cli.db_cmd import DbUrl
+from services.cli.results_cmd import database_error, import_with_progress, summary_line
 from workers.job import RunError, RunOptions
 from workers.run import RunSummary, run_job
 
@@ -124,9 +134,26 @@ def run(
         "adjustment of all frames with the model before the buildings).",
     ),
     no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
+    database: bool = typer.Option(
+        False,
+        "--database",
+        help="Also store the results in the city model database (one transaction per building).",
+    ),
+    model: str | None = typer.Option(
+        None,
+        "--model",
+        help="With --database: the city model (default: CITY's file stem; imported first if missing).",
+    ),
+    database_url: str | None = DbUrl,
 ) -> None:
-    """Texture every building the sequence sees and write the results folder."""
+    """Texture every building the sequence sees and write the results folder (and with
+    --database store it in the city model database)."""
     console = Console()
+    if model is not None and not database:
+        console.print("[red]error:[/] --model needs --database")
+        raise typer.Exit(code=2)
+    url = database_url or get_settings().database_url
+    model_id = _database_model(url, city, model, console) if database else None
     ids = tuple(b.strip() for b in buildings.split(",") if b.strip()) if buildings else None
     options = RunOptions.build(
         resolution_px_per_m=resolution,
@@ -160,6 +187,49 @@ def run(
         console.print(calibration_line(summary.calibration))
         if summary.orientation and summary.orientation.get("run"):
             console.print(orientation_line(summary.orientation))
+    if model_id is not None:
+        _store(url, out, model_id, console)
+
+
+def _database_model(url: str, city: Path, model: str | None, console: Console) -> int:
+    """The id of the city model the results go into, imported from `city` first when missing
+    (before the job runs, so that a database that cannot take them fails early)."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from db.errors import CityDBError
+    from db.results_import import ensure_model
+
+    try:
+        m, imported = ensure_model(url, city, model)
+    except (CityDBError, ValueError, OSError) as exc:
+        console.print(f"[red]error:[/] city model for the database: {exc}")
+        raise typer.Exit(code=1) from None
+    except SQLAlchemyError as exc:
+        console.print(f"[red]error:[/] {database_error(exc)}")
+        raise typer.Exit(code=1) from None
+    if imported is not None:
+        console.print(
+            f"imported {city} as city model [bold]{imported.name}[/bold] (id {imported.model_id}): "
+            f"{imported.buildings} buildings, {imported.parts} parts in {imported.seconds:.1f} s"
+        )
+    return int(m["id"])
+
+
+def _store(url: str, out: Path, model_id: int, console: Console) -> None:
+    """The finished results folder into the database (`citytherm results import`)."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from db.errors import CityDBError
+
+    try:
+        s = import_with_progress(url, out, model_id, console)
+    except (CityDBError, ValueError, OSError) as exc:
+        console.print(f"[red]not stored in the database:[/] {exc} (the results are in {out})")
+        raise typer.Exit(code=1) from None
+    except SQLAlchemyError as exc:
+        console.print(f"[red]not stored in the database:[/] {database_error(exc)} (the results are in {out})")
+        raise typer.Exit(code=1) from None
+    console.print(summary_line(s))
 
 
 def calibration_line(cal: dict[str, Any]) -> str:
