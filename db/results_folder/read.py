@@ -373,7 +373,9 @@ def read_results_folder(folder: str | Path) -> ResultsFolder:
     if not isinstance(report, dict):
         raise ResultsReadError(f"{where}: not a JSON object")
     theme = _get(report, "theme", where, str)
-    radiometry = report_radiometry(report, where)
+    # a job without results writes no radiometry, and needs none: there are no tiles
+    no_tiles = "radiometry" not in report and not report.get("buildings")
+    radiometry = Radiometry() if no_tiles else report_radiometry(report, where)
     surfaces: dict[str, tuple[SurfaceStats, ...]] = {}
     timings: dict[str, dict[str, float]] = {}
     tiles_of: dict[str, set[str]] = {}
