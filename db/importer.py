@@ -1,4 +1,4 @@
-"""Import a CityGML file into the city model database, streamed, in batches.
+"""Import a CityGML file into the city model database, streamed, all or nothing.
 
 In: a CityGML file (1.0/2.0/3.0; read by `db.citygml.reader`, never whole in memory) and a
 database (Engine, sessionmaker or URL) migrated to head. Out: one `city_model` row with its
@@ -6,28 +6,43 @@ database (Engine, sessionmaker or URL) migrated to head. Out: one `city_model` r
 plane, geometry checks) and the file's appearances (`appearance` → `surface_data` →
 `texture_param`); an `ImportSummary`.
 
-Buildings are written with `COPY` in batches of `ImportOptions.batch_size` top-level buildings,
-one transaction per batch. The COPY text of a batch (geometries as hex EWKB built in Python with
-numpy, planes, footprints, envelopes, checks: `db.import_rows`) is made where the file is read; for
-big files that is a separate reader process (`db.import_stream`), so parsing overlaps with the
-database's work. Row ids are reserved from the sequences in one round trip per batch, so parents,
-roots, surfaces and texture targets are linked without further queries. For big files the GiST
-indexes are dropped during the load and rebuilt once at the end
-(`ImportOptions.defer_spatial_indexes`). A model name that exists is refused (`ModelExistsError`)
-unless `replace=True`: the new model is then loaded under a temporary name and replaces the old
-one in the final transaction, so a failed import leaves the old model as it was. A failed import
-deletes what it wrote.
+The whole model is written in ONE transaction on one connection: `COPY` in batches of
+`ImportOptions.batch_size` top-level buildings, then the final step (late appearances,
+cross-batch texture targets, counts, envelope, state `complete`; with `replace` the old model is
+deleted and the new one takes its name) and the commit. Other sessions never see a partial model,
+whatever stops the import: an error or SIGINT/SIGTERM/SIGHUP (turned into `ImportInterrupted`
+while the import runs in the main thread: the running statement is cancelled, the transaction
+rolled back, the reader process stopped) or SIGKILL (the server rolls back the transaction of a
+connection that is gone; `client_connection_check_interval` makes it notice within a second even
+in the middle of a statement). Nothing is dropped or locked that other users need: COPY of new
+rows takes only the row-exclusive table locks every writer takes, the spatial (GiST) indexes stay
+in place and usable throughout, and rows of other models are touched only by a replacement's
+final step. Two imports of one name do not wait on each other: the second is refused
+(`ModelExistsError`). The COPY text of a batch (geometries as hex EWKB built in Python with
+numpy, planes, footprints, envelopes, checks: `db.import_rows`) is made where the file is read;
+for big files that is a separate reader process (`db.import_stream`), so parsing overlaps with
+the database's work. Row ids are reserved from the sequences in one round trip per batch, so
+parents, roots, surfaces and texture targets are linked without further queries.
+
+A model name that exists is refused (`ModelExistsError`) unless `replace=True`. Before it starts,
+an import removes models left in state `importing` by dead imports (`db.ops.remove_dead_imports`;
+this importer never commits such a row, older versions did), as `citytherm db repair` does.
 """
 
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 import time
 import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import partial
 from os import PathLike
 from pathlib import Path
+from types import FrameType, TracebackType
 from typing import Any
 
 import numpy as np
@@ -43,18 +58,28 @@ from db.geomcodec import encode_envelope
 from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
 from db.import_stream import BatchStream
 from db.ops import (
+    IMPORT_MODEL_LOCK,
+    IMPORT_NAME_LOCK,
     copy_block,
     copy_rows,
-    create_spatial_indexes,
     delete_model,
-    drop_spatial_indexes,
+    remove_dead_imports,
     reserve_ids,
+    spatial_index_problems,
 )
 from db.session import as_engine
+from db.settings import Settings
 from workers.pipeline.geometry.citymodel import Appearance, ModelHeader
 from workers.pipeline.geometry.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
 
-__all__ = ["ImportOptions", "ImportSummary", "import_citygml", "model_srid"]
+__all__ = [
+    "ImportInterrupted",
+    "ImportOptions",
+    "ImportProgress",
+    "ImportSummary",
+    "import_citygml",
+    "model_srid",
+]
 
 log = logging.getLogger(__name__)
 
@@ -67,23 +92,17 @@ class ImportOptions:
     """Options of `import_citygml`.
 
     Attributes:
-        batch_size: top-level buildings per transaction.
-        defer_spatial_indexes: drop the GiST indexes during the load and rebuild them at the end;
-            None = automatically for files larger than `defer_above_bytes`.
-        defer_above_bytes: file size above which indexes are deferred automatically.
+        batch_size: top-level buildings per COPY batch (all batches share one transaction).
         checks: geometry checks stored per surface: "fast" (vectorised over the batch: vertex
             count, planarity, area, unclosed rings), "full" (`db.citygml.checks.check_building`,
             adding self-intersection and outward wall normals; about 20 ms per building) or "none".
         huge_tree: passed to the reader (lift libxml2 limits for unusual files).
         parallel_read: parse the file in a separate reader process while this one writes (None:
-            for files larger than `parallel_above_bytes`; always in-process inside daemonic
-            workers, which may not have children).
+            for files larger than `parallel_above_bytes`).
         import_images: store the image files of the file's textures that lie in its folder.
     """
 
     batch_size: int = 250
-    defer_spatial_indexes: bool | None = None
-    defer_above_bytes: int = 100 * 1024**2
     checks: str = "fast"
     huge_tree: bool = False
     parallel_read: bool | None = None
@@ -107,8 +126,87 @@ class ImportSummary:
     replaced: bool
     #: peak RSS of the reader process (MB) when the file was read in parallel.
     reader_peak_rss_mb: float | None = None
-    #: seconds: waiting for the reader, writing batches, finishing, rebuilding spatial indexes.
+    #: seconds: starting (dead imports removed, model row), waiting for the reader, writing
+    #: batches, the final step, the commit, planner statistics afterwards.
     timings_s: dict[str, float] = field(default_factory=dict)
+    #: models left `importing` by dead imports that this import removed first.
+    removed_dead_imports: int = 0
+
+
+@dataclass(frozen=True)
+class ImportProgress:
+    """Where an import is, for a progress display: `stage` is "writing" (after each batch),
+    "finishing" (all batches written, final step running) or "committed"."""
+
+    stage: str
+    buildings: int
+    parts: int
+    surfaces: int
+    seconds: float
+
+
+class ImportInterrupted(BaseException):
+    """The import was stopped by a signal (SIGINT, SIGTERM, SIGHUP) and rolled back: nothing of it
+    was written. A BaseException, like KeyboardInterrupt, so that `except Exception` handlers let
+    it through; `signum` is the signal's number."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(
+            f"import interrupted by {signal.Signals(signum).name}: rolled back, nothing was written"
+        )
+
+
+#: signals turned into `ImportInterrupted` during an import (when nobody else handles them).
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class _Interrupts:
+    """While active (main thread only), SIGINT/SIGTERM/SIGHUP raise `ImportInterrupted` once;
+    inside `deferred()` (the commit, the clean-up) a signal is only noted. A signal noted before
+    any interrupt is delivered again when the old handlers are back (after a commit: the model is
+    complete, the process then stops as it was told); after an interrupt, further signals are
+    dropped (the import is stopping already)."""
+
+    def __init__(self) -> None:
+        self.old: dict[int, Any] = {}
+        self.fired = False
+        self.pending: int | None = None
+        self.depth = 0
+        #: the import's connection: a statement running on it is cancelled by the interrupt
+        self.conn: psycopg.Connection | None = None
+
+    def __enter__(self) -> _Interrupts:
+        if threading.current_thread() is threading.main_thread():
+            for sig in _STOP_SIGNALS:
+                current = signal.getsignal(sig)
+                if current in (signal.SIG_DFL, signal.default_int_handler):
+                    self.old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        for sig, handler in self.old.items():
+            signal.signal(sig, handler)
+        if self.pending is not None and not self.fired:
+            signal.raise_signal(self.pending)
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        if self.fired or self.depth:
+            self.pending = self.pending or signum
+            return
+        self.fired = True
+        _cancel_running(self.conn)
+        raise ImportInterrupted(signum)
+
+    @contextmanager
+    def deferred(self) -> Iterator[None]:
+        self.depth += 1
+        try:
+            yield
+        finally:
+            self.depth -= 1
 
 
 def model_srid(srs_name: str | None) -> int:
@@ -163,7 +261,7 @@ def _write_lines(
 
 
 def _start_model(
-    engine: Engine,
+    conn: Connection,
     header: ModelHeader,
     path: Path,
     name: str,
@@ -171,39 +269,81 @@ def _start_model(
     replace: bool,
     image_dir: Path | None = None,
 ) -> tuple[int, bool]:
-    """Create the `city_model` row. When a model of that name exists (and `replace` is set) the
-    new one is loaded under a temporary name and takes over in `_finish_model`, so the old model
-    stays intact until the new one is complete."""
-    with engine.begin() as conn:
-        old = conn.execute(text("SELECT id FROM city_model WHERE name = :n"), {"n": name}).first()
-        replaced = old is not None
-        if replaced and not replace:
-            raise ModelExistsError(f"city model {name!r} exists already (import with replace to overwrite)")
-        model_id = conn.execute(
-            text(
-                "INSERT INTO city_model (name, srs_name, srid, vertical_epsg, citygml_version, gml_name, "
-                "source_file, building_count, part_count, surface_count, state) "
-                "VALUES (:name, :srs, :srid, :vert, :ver, :gname, :src, 0, 0, 0, 'importing') RETURNING id"
-            ),
-            {
-                "name": f"{name}#importing-{uuid.uuid4().hex}" if replaced else name,
-                "srs": header.srs_name,
-                "srid": srid,
-                "vert": _vertical(header.srs_name),
-                "ver": header.version,
-                "gname": header.name,
-                "src": str(path.resolve()),
-            },
-        ).scalar_one()
-        if header.appearances:
-            rows = AppearanceRows()
-            collect_appearance_rows(
-                rows, header.appearances, model_id=model_id, building_row=None, surface_row={}
-            )
-            app_ids = rows.write(conn, copy_rows, reserve_ids)
-            if image_dir is not None:
-                store_appearance_images(conn, app_ids, image_dir)
+    """Begin the import's transaction: take the name lock, create the `city_model` row. When a
+    model of that name exists (and `replace` is set) the new one is written under a temporary name
+    and takes over in `_finish_model`, so the old model stays as it is until the commit."""
+    free = conn.execute(
+        text("SELECT pg_try_advisory_xact_lock(:ns, hashtext(:n))"), {"ns": IMPORT_NAME_LOCK, "n": name}
+    ).scalar_one()
+    if not free:
+        raise ModelExistsError(f"city model {name!r} is being imported by another session")
+    # who we are for pg_stat_activity; the server notices a vanished client within a second
+    conn.execute(
+        text(
+            "SELECT set_config('application_name', :app, true), "
+            "set_config('client_connection_check_interval', '1000', true)"
+        ),
+        {"app": f"citytherm import {name}"[:63]},
+    )
+    old = conn.execute(text("SELECT id FROM city_model WHERE name = :n"), {"n": name}).first()
+    replaced = old is not None
+    if replaced and not replace:
+        raise ModelExistsError(f"city model {name!r} exists already (import with replace to overwrite)")
+    model_id = conn.execute(
+        text(
+            "INSERT INTO city_model (name, srs_name, srid, vertical_epsg, citygml_version, gml_name, "
+            "source_file, building_count, part_count, surface_count, state) "
+            "VALUES (:name, :srs, :srid, :vert, :ver, :gname, :src, 0, 0, 0, 'importing') RETURNING id"
+        ),
+        {
+            "name": f"{name}#importing-{uuid.uuid4().hex}" if replaced else name,
+            "srs": header.srs_name,
+            "srid": srid,
+            "vert": _vertical(header.srs_name),
+            "ver": header.version,
+            "gname": header.name,
+            "src": str(path.resolve()),
+        },
+    ).scalar_one()
+    conn.execute(text("SELECT pg_advisory_xact_lock(:ns, :m)"), {"ns": IMPORT_MODEL_LOCK, "m": model_id})
+    if header.appearances:
+        rows = AppearanceRows()
+        collect_appearance_rows(
+            rows, header.appearances, model_id=model_id, building_row=None, surface_row={}
+        )
+        app_ids = rows.write(conn, copy_rows, reserve_ids)
+        if image_dir is not None:
+            store_appearance_images(conn, app_ids, image_dir)
     return model_id, replaced
+
+
+def _cancel_running(raw: psycopg.Connection | None) -> None:
+    """Ask the server to cancel the statement running on `raw`, if one is (a closed connection
+    alone is noticed only when the statement ends, or after `client_connection_check_interval`)."""
+    if raw is None or raw.closed or raw.info.transaction_status != psycopg.pq.TransactionStatus.ACTIVE:
+        return
+    try:
+        raw.cancel_safe(timeout=5.0)
+    except Exception:  # best effort: closing the connection ends the session anyway
+        log.debug("cancel request failed", exc_info=True)
+
+
+def _abandon(conn: Connection) -> None:
+    """Roll the import's transaction back. When a statement may still be running (a signal came
+    in the middle of it: SQLAlchemy then has dropped the connection already), cancel it and drop
+    the connection: the server rolls back what a closed connection wrote."""
+    if conn.invalidated:
+        return
+    try:
+        raw = conn.connection.driver_connection
+        if raw is not None and raw.info.transaction_status == psycopg.pq.TransactionStatus.ACTIVE:
+            _cancel_running(raw)
+            conn.invalidate()
+            return
+        conn.rollback()
+    except Exception:  # the connection is unusable: closing it rolls back on the server
+        log.debug("rollback failed; dropping the connection", exc_info=True)
+        conn.invalidate()
 
 
 def _finish_model(
@@ -268,84 +408,127 @@ def import_citygml(
     name: str | None = None,
     replace: bool = False,
     options: ImportOptions | None = None,
+    progress: Callable[[ImportProgress], None] | None = None,
 ) -> ImportSummary:
-    """Import the CityGML file `path` as city model `name` (default: the file's stem).
+    """Import the CityGML file `path` as city model `name` (default: the file's stem), all or
+    nothing (module docstring).
 
-    `db` is an Engine, a sessionmaker bound to one, or a URL. Raises `ModelExistsError` when the
-    name exists and `replace` is false, `CityGMLError` (from the reader) for a bad file.
+    `db` is an Engine, a sessionmaker bound to one, or a URL. `progress` is called after every
+    batch and at the final step. Raises `ModelExistsError` when the name exists and `replace` is
+    false (or another session is importing that name), `CityGMLError` (from the reader) for a bad
+    file, `InputDataError` for a file that cannot be one model (e.g. duplicate building ids),
+    `ImportInterrupted` when SIGINT, SIGTERM or SIGHUP stopped it.
     """
     opts = options or ImportOptions()
     path = Path(path)
     name = name or path.stem
+    if opts.checks not in ("fast", "full", "none"):
+        raise ValueError(f"ImportOptions.checks must be 'fast', 'full' or 'none', not {opts.checks!r}")
     engine = as_engine(db)
+    try:
+        return _import(engine, path, name, replace, opts, progress)
+    finally:
+        if isinstance(db, str | Settings):  # an engine of our own: close its connections
+            engine.dispose()
+
+
+def _import(
+    engine: Engine,
+    path: Path,
+    name: str,
+    replace: bool,
+    opts: ImportOptions,
+    progress: Callable[[ImportProgress], None] | None,
+) -> ImportSummary:
     t0 = time.perf_counter()
     header = citygml_reader.read_header(path, huge_tree=opts.huge_tree)
     srid = model_srid(header.srs_name)
-    if opts.checks not in ("fast", "full", "none"):
-        raise ValueError(f"ImportOptions.checks must be 'fast', 'full' or 'none', not {opts.checks!r}")
-    defer = opts.defer_spatial_indexes
-    if defer is None:
-        defer = path.stat().st_size > opts.defer_above_bytes
     image_dir = path.resolve().parent if opts.import_images else None
-    model_id, replaced = _start_model(engine, header, path, name, srid, replace, image_dir)
+    parallel = (
+        opts.parallel_read
+        if opts.parallel_read is not None
+        else path.stat().st_size > opts.parallel_above_bytes
+    )
     counts = {"buildings": 0, "parts": 0, "surfaces": 0, "appearances": len(header.appearances)}
     late: list[Appearance] = []
     ordinal = 0
     timings = {"wait_for_reader": 0.0, "write": 0.0}
-    try:
-        if defer:
-            drop_spatial_indexes(engine)
-        stream = BatchStream(
-            path,
-            batch_size=opts.batch_size,
-            transform=partial(batch_lines, srid=srid, checks=opts.checks),
-            huge_tree=opts.huge_tree,
-            parallel=(
-                opts.parallel_read
-                if opts.parallel_read is not None
-                else path.stat().st_size > opts.parallel_above_bytes
-            ),
-        )
-        t_wait = time.perf_counter()
-        for kind, obj in stream:
-            timings["wait_for_reader"] += time.perf_counter() - t_wait
-            if kind == "appearance":
-                late.append(obj)
-                t_wait = time.perf_counter()
-                continue
-            t_write = time.perf_counter()
-            with engine.begin() as conn:
-                _write_lines(conn, obj, model_id, ordinal, image_dir=image_dir)
-            timings["write"] += time.perf_counter() - t_write
-            ordinal += len(obj.building_tails)
-            n_parts = sum(obj.is_part)
-            counts["buildings"] += len(obj.is_part) - n_parts
-            counts["parts"] += n_parts
-            counts["surfaces"] += len(obj.surface_tails)
-            counts["appearances"] += sum(len(a) for _, a in obj.appearances)
+
+    def report(stage: str) -> None:
+        if progress is not None:
+            progress(
+                ImportProgress(
+                    stage, counts["buildings"], counts["parts"], counts["surfaces"], time.perf_counter() - t0
+                )
+            )
+
+    stream = BatchStream(
+        path,
+        batch_size=opts.batch_size,
+        transform=partial(batch_lines, srid=srid, checks=opts.checks),
+        huge_tree=opts.huge_tree,
+        parallel=parallel,
+    )
+    with _Interrupts() as interrupts, stream, engine.connect() as conn:
+        try:
+            stream.start()  # the reader parses while the database is prepared
+            interrupts.conn = conn.connection.driver_connection
+            dead = [d for d in remove_dead_imports(engine) if d.status == "removed"]
+            for d in dead:
+                log.warning("removed model %r (id %d) left 'importing' by a dead import", d.name, d.model_id)
+            for index, table, column, problem in spatial_index_problems(conn):
+                log.warning(
+                    "spatial index %s on %s(%s) is %s: run `citytherm db repair`",
+                    index,
+                    table,
+                    column,
+                    problem,
+                )
+            model_id, replaced = _start_model(conn, header, path, name, srid, replace, image_dir)
+            timings["start"] = time.perf_counter() - t0
             t_wait = time.perf_counter()
-        counts["appearances"] += len(late)
-        t_fin = time.perf_counter()
-        with engine.begin() as conn:
+            for kind, obj in stream:
+                timings["wait_for_reader"] += time.perf_counter() - t_wait
+                if kind == "appearance":
+                    late.append(obj)
+                    t_wait = time.perf_counter()
+                    continue
+                t_write = time.perf_counter()
+                _write_lines(conn, obj, model_id, ordinal, image_dir=image_dir)
+                timings["write"] += time.perf_counter() - t_write
+                ordinal += len(obj.building_tails)
+                n_parts = sum(obj.is_part)
+                counts["buildings"] += len(obj.is_part) - n_parts
+                counts["parts"] += n_parts
+                counts["surfaces"] += len(obj.surface_tails)
+                counts["appearances"] += sum(len(a) for _, a in obj.appearances)
+                report("writing")
+                t_wait = time.perf_counter()
+            counts["appearances"] += len(late)
+            report("finishing")
+            t_fin = time.perf_counter()
             _finish_model(conn, model_id, name, counts, late, image_dir=image_dir)
-        with engine.begin() as conn:
-            # planner statistics for the key columns (geometry statistics are slow to gather)
-            conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")
-            conn.exec_driver_sql("ANALYZE surface (city_model_id, building_id)")
-        timings["finish"] = time.perf_counter() - t_fin
-    except BaseException as exc:
-        with engine.begin() as conn:
-            delete_model(conn, model_id)
-        if isinstance(exc, IntegrityError | psycopg.errors.IntegrityError):
-            orig = getattr(exc, "orig", None) or exc
-            detail = " ".join(str(orig).split())
-            raise InputDataError(f"{path}: cannot be stored as one model ({detail})") from exc
-        raise
-    finally:
-        if defer:
-            t_idx = time.perf_counter()
-            create_spatial_indexes(engine)
-            timings["spatial_indexes"] = time.perf_counter() - t_idx
+            t_commit = time.perf_counter()
+            timings["finish"] = t_commit - t_fin
+            with interrupts.deferred():
+                conn.commit()
+            timings["commit"] = time.perf_counter() - t_commit
+        except BaseException as exc:
+            with interrupts.deferred():
+                _abandon(conn)
+                stream.close()
+            if isinstance(exc, IntegrityError | psycopg.errors.IntegrityError):
+                orig = getattr(exc, "orig", None) or exc
+                detail = " ".join(str(orig).split())
+                raise InputDataError(f"{path}: cannot be stored as one model ({detail})") from exc
+            raise
+    report("committed")
+    t_an = time.perf_counter()
+    with engine.begin() as conn:
+        # planner statistics for the key columns (geometry statistics are slow to gather)
+        conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")
+        conn.exec_driver_sql("ANALYZE surface (city_model_id, building_id)")
+    timings["analyze"] = time.perf_counter() - t_an
     return ImportSummary(
         model_id=model_id,
         name=name,
@@ -359,4 +542,5 @@ def import_citygml(
         replaced=replaced,
         reader_peak_rss_mb=stream.peak_rss_mb,
         timings_s={k: round(v, 3) for k, v in timings.items()},
+        removed_dead_imports=len(dead),
     )

@@ -82,7 +82,9 @@ class CityModel(Base):
     building_count: Mapped[int] = mapped_column(Integer, default=0)
     part_count: Mapped[int] = mapped_column(Integer, default=0)
     surface_count: Mapped[int] = mapped_column(BigInteger, default=0)
-    #: "importing" while batches are being written, "complete" afterwards.
+    #: "complete" once imported. The importer writes a model in one transaction, so other sessions
+    #: see only complete models; "importing" is left only by an import of an older version that
+    #: died (the GIS views hide such models; `citytherm db repair` or the next import removes them).
     state: Mapped[str] = mapped_column(Text, default="importing")
     envelope: Mapped[Any | None] = mapped_column(_geom("POLYGONZ"))
 

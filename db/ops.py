@@ -1,36 +1,65 @@
 """Low-level helpers of the database layer: id reservation, COPY through psycopg, deleting a
-city model, dropping and rebuilding the spatial indexes around big loads.
+city model; the import's advisory locks, removing models left `importing` by dead imports, and
+checking (repairing) the shared spatial indexes.
 
-In: a SQLAlchemy `Connection` inside a transaction (the caller's unit of work). Out: rows written.
+In: a SQLAlchemy `Connection` inside a transaction (the caller's unit of work), or an `Engine` for
+the repairs. Out: rows written, or what a repair did.
+
+SQLAlchemy is imported where it is used: the COPY text helpers also run in the importer's reader
+process, which should start fast.
+
+Import locks (`pg_advisory_*` with two keys): an import holds `(IMPORT_NAME_LOCK, hashtext(name))`
+for its transaction, so two imports of one name never wait on each other (the second is refused),
+and `(IMPORT_MODEL_LOCK, model id)` while it writes that model. A `city_model` row in state
+`importing` whose model lock nobody holds belongs to an import that died: `remove_dead_imports`
+deletes it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from sqlalchemy import Connection, Engine, text
+if TYPE_CHECKING:
+    from sqlalchemy import Connection, Engine
 
 __all__ = [
+    "IMPORT_MODEL_LOCK",
+    "IMPORT_NAME_LOCK",
     "SPATIAL_INDEXES",
+    "DeadImport",
+    "IndexRepair",
     "copy_block",
     "copy_field",
     "copy_rows",
     "copy_text",
-    "create_spatial_indexes",
     "delete_model",
-    "drop_spatial_indexes",
+    "ensure_spatial_indexes",
     "pg_bool_array",
     "pg_float_array",
     "pg_text_array",
+    "remove_dead_imports",
     "reserve_ids",
+    "spatial_index_problems",
 ]
 
-#: spatial indexes dropped during a deferred-index load and rebuilt afterwards.
+#: the shared GiST indexes (name, table, column): never dropped by an import.
 SPATIAL_INDEXES: tuple[tuple[str, str, str], ...] = (
     ("ix_building_footprint", "building", "footprint"),
     ("ix_building_envelope", "building", "envelope"),
     ("ix_surface_geometry", "surface", "geometry"),
 )
+#: first key of the advisory lock on a model name being imported (second key: hashtext(name)).
+IMPORT_NAME_LOCK = 0x43540001
+#: first key of the advisory lock on a model being written (second key: its id).
+IMPORT_MODEL_LOCK = 0x43540002
+
+
+def _text(sql: str):  # sqlalchemy's TextClause (imported lazily)
+    from sqlalchemy import text
+
+    return text(sql)
 
 
 def reserve_ids(conn: Connection, table: str, n: int) -> list[int]:
@@ -137,37 +166,128 @@ def copy_block(conn: Connection, table: str, columns: Sequence[str], lines: Sequ
             cp.write("".join(lines[i : i + step]))
 
 
-def drop_spatial_indexes(engine: Engine) -> None:
-    with engine.begin() as conn:
-        for name, _, _ in SPATIAL_INDEXES:
-            conn.exec_driver_sql(f"DROP INDEX IF EXISTS {name}")
-
-
-def create_spatial_indexes(engine: Engine) -> None:
-    with engine.begin() as conn:
-        for name, table, column in SPATIAL_INDEXES:
-            conn.exec_driver_sql(f"CREATE INDEX IF NOT EXISTS {name} ON {table} USING gist ({column})")
-
-
 def delete_model(conn: Connection, model_id: int) -> None:
     """Delete a city model and everything that hangs off it (children first, for speed)."""
     p = {"m": model_id}
     conn.execute(
-        text(
+        _text(
             "DELETE FROM texture_param tp USING surface_data sd, appearance a "
             "WHERE tp.surface_data_id = sd.id AND sd.appearance_id = a.id AND a.city_model_id = :m"
         ),
         p,
     )
     conn.execute(
-        text(
+        _text(
             "DELETE FROM texture_param tp USING surface s WHERE tp.surface_id = s.id AND s.city_model_id = :m"
         ),
         p,
     )
-    conn.execute(text("DELETE FROM appearance WHERE city_model_id = :m"), p)
-    conn.execute(text("DELETE FROM job WHERE city_model_id = :m"), p)
-    conn.execute(text("DELETE FROM surface WHERE city_model_id = :m"), p)
-    conn.execute(text("UPDATE building SET parent_id = NULL, root_id = NULL WHERE city_model_id = :m"), p)
-    conn.execute(text("DELETE FROM building WHERE city_model_id = :m"), p)
-    conn.execute(text("DELETE FROM city_model WHERE id = :m"), p)
+    conn.execute(_text("DELETE FROM appearance WHERE city_model_id = :m"), p)
+    conn.execute(_text("DELETE FROM job WHERE city_model_id = :m"), p)
+    conn.execute(_text("DELETE FROM surface WHERE city_model_id = :m"), p)
+    conn.execute(_text("UPDATE building SET parent_id = NULL, root_id = NULL WHERE city_model_id = :m"), p)
+    conn.execute(_text("DELETE FROM building WHERE city_model_id = :m"), p)
+    conn.execute(_text("DELETE FROM city_model WHERE id = :m"), p)
+
+
+@dataclass(frozen=True)
+class DeadImport:
+    """A `city_model` row found in state `importing` by `remove_dead_imports`.
+
+    `status` is "removed", "dead" (found dead, left alone: dry run) or "in progress" (its import's
+    session still holds the model lock: left alone)."""
+
+    model_id: int
+    name: str
+    buildings: int
+    parts: int
+    surfaces: int
+    status: str
+
+
+def remove_dead_imports(engine: Engine, *, dry_run: bool = False) -> list[DeadImport]:
+    """Delete every model in state `importing` whose import is dead (nobody holds its model lock),
+    each in its own transaction; report all models found `importing`."""
+    found: list[DeadImport] = []
+    with engine.connect() as conn:
+        rows = conn.execute(
+            _text("SELECT id, name FROM city_model WHERE state = 'importing' ORDER BY id")
+        ).all()
+        conn.commit()
+        for model_id, name in rows:
+            key = {"ns": IMPORT_MODEL_LOCK, "m": model_id}
+            if not conn.execute(_text("SELECT pg_try_advisory_lock(:ns, :m)"), key).scalar_one():
+                conn.commit()
+                found.append(DeadImport(model_id, name, 0, 0, 0, "in progress"))
+                continue
+            try:
+                # still importing (not finished meanwhile)? lock the row for the delete
+                still = conn.execute(
+                    _text("SELECT 1 FROM city_model WHERE id = :m AND state = 'importing' FOR UPDATE"), key
+                ).first()
+                if still is None:
+                    conn.rollback()
+                    continue
+                b, p = conn.execute(
+                    _text(
+                        "SELECT count(*) FILTER (WHERE NOT is_part), count(*) FILTER (WHERE is_part) "
+                        "FROM building WHERE city_model_id = :m"
+                    ),
+                    key,
+                ).one()
+                s = conn.execute(
+                    _text("SELECT count(*) FROM surface WHERE city_model_id = :m"), key
+                ).scalar_one()
+                if dry_run:
+                    conn.rollback()
+                else:
+                    delete_model(conn, model_id)
+                    conn.commit()
+                found.append(DeadImport(model_id, name, b, p, s, "dead" if dry_run else "removed"))
+            finally:
+                if conn.in_transaction():
+                    conn.rollback()
+                conn.execute(_text("SELECT pg_advisory_unlock(:ns, :m)"), key)
+                conn.commit()
+    return found
+
+
+@dataclass(frozen=True)
+class IndexRepair:
+    """A shared spatial index found `missing` or `invalid` (a failed concurrent build), and whether
+    `ensure_spatial_indexes` rebuilt it."""
+
+    name: str
+    table: str
+    column: str
+    problem: str
+    rebuilt: bool
+
+
+def spatial_index_problems(conn: Connection) -> list[tuple[str, str, str, str]]:
+    """(name, table, column, "missing" | "invalid") of every spatial index that is not usable."""
+    out = []
+    for name, table, column in SPATIAL_INDEXES:
+        row = conn.execute(
+            _text("SELECT indisvalid FROM pg_index WHERE indexrelid = to_regclass(:n)"), {"n": name}
+        ).first()
+        if row is None or not row[0]:
+            out.append((name, table, column, "missing" if row is None else "invalid"))
+    return out
+
+
+def ensure_spatial_indexes(engine: Engine, *, dry_run: bool = False) -> list[IndexRepair]:
+    """Rebuild missing or invalid spatial indexes with `CREATE INDEX CONCURRENTLY` (other sessions
+    keep reading and writing the tables meanwhile); report what was found."""
+    done: list[IndexRepair] = []
+    with engine.connect() as conn:
+        conn.execution_options(isolation_level="AUTOCOMMIT")
+        for name, table, column, problem in spatial_index_problems(conn):
+            if not dry_run:
+                if problem == "invalid":
+                    conn.exec_driver_sql(f"DROP INDEX CONCURRENTLY IF EXISTS {name}")
+                conn.exec_driver_sql(
+                    f"CREATE INDEX CONCURRENTLY IF NOT EXISTS {name} ON {table} USING gist ({column})"
+                )
+            done.append(IndexRepair(name, table, column, problem, rebuilt=not dry_run))
+    return done

@@ -207,15 +207,16 @@ def test_failed_import_leaves_nothing(db_engine, monkeypatch) -> None:
     assert _scalar(db_engine, "SELECT count(*) FROM building WHERE city_model_id = :m", m=old.model_id) == 61
 
 
-def test_deferred_indexes_and_bbox_export(db_engine, tmp_path) -> None:
+def test_spatial_indexes_kept_and_bbox_export(db_engine, tmp_path) -> None:
     path = BUNDLED_MODEL
-    s = import_citygml(
-        db_engine, path, name="bbox-berlin", options=ImportOptions(batch_size=25, defer_spatial_indexes=True)
-    )
+    s = import_citygml(db_engine, path, name="bbox-berlin", options=ImportOptions(batch_size=25))
     with db_engine.connect() as c:
         idx = set(
             c.execute(
-                text("SELECT indexname FROM pg_indexes WHERE tablename IN ('building', 'surface')")
+                text(
+                    "SELECT c.relname FROM pg_index i JOIN pg_class c ON c.oid = i.indexrelid "
+                    "WHERE i.indrelid IN ('building'::regclass, 'surface'::regclass) AND i.indisvalid"
+                )
             ).scalars()
         )
         assert {"ix_building_footprint", "ix_building_envelope", "ix_surface_geometry"} <= idx
