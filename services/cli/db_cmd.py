@@ -1,4 +1,4 @@
-"""Database commands: `citytherm db upgrade|downgrade|current`, `citytherm import CITY.gml`,
+"""Database commands: `citytherm db upgrade|downgrade|current|repair`, `citytherm import CITY.gml`,
 `citytherm export --model M -o OUT/`.
 
 The database is `CITYTHERM_DATABASE_URL` (settings) unless `--database-url` is given.
@@ -6,6 +6,7 @@ The database is `CITYTHERM_DATABASE_URL` (settings) unless `--database-url` is g
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import typer
@@ -14,7 +15,8 @@ from rich.console import Console
 from db.settings import get_settings
 
 console = Console()
-db_app = typer.Typer(help="City model database schema (Alembic migrations).", no_args_is_help=True)
+err_console = Console(stderr=True)
+db_app = typer.Typer(help="City model database: schema (Alembic migrations), repair.", no_args_is_help=True)
 
 
 def _url(database_url: str | None) -> str:
@@ -53,29 +55,85 @@ def current_cmd(database_url: str | None = DbUrl) -> None:
     console.print(f"current: {current_revision(_url(database_url))}  head: {head_revision()}")
 
 
+@db_app.command("repair")
+def repair_cmd(
+    dry_run: bool = typer.Option(False, "--dry-run", help="only report what would be repaired"),
+    database_url: str | None = DbUrl,
+) -> None:
+    """Remove city models left 'importing' by imports that died, rebuild missing or invalid spatial
+    indexes (concurrently: the tables stay usable); report what was found and done."""
+    from db.ops import ensure_spatial_indexes, remove_dead_imports
+    from db.session import make_engine
+
+    engine = make_engine(_url(database_url))
+    try:
+        models = remove_dead_imports(engine, dry_run=dry_run)
+        indexes = ensure_spatial_indexes(engine, dry_run=dry_run)
+    finally:
+        engine.dispose()
+    for m in models:
+        what = {"removed": "removed", "dead": "would remove", "in progress": "left alone (import running)"}
+        console.print(
+            f"model [bold]{m.name}[/bold] (id {m.model_id}, 'importing'): {what[m.status]}"
+            + (
+                ""
+                if m.status == "in progress"
+                else f" ({m.buildings} buildings, {m.parts} parts, {m.surfaces} surfaces)"
+            )
+        )
+    for i in indexes:
+        action = "rebuilt" if i.rebuilt else "would rebuild"
+        console.print(f"spatial index [bold]{i.name}[/bold] on {i.table}({i.column}) {i.problem}: {action}")
+    if not models and not indexes:
+        console.print("nothing to repair: no dead imports, spatial indexes in place")
+
+
+def _rates(buildings: int, parts: int, seconds: float) -> str:
+    if seconds <= 0:
+        return ""
+    return f" ({buildings / seconds:.0f} buildings/s, {parts / seconds:.0f} parts/s)"
+
+
 def import_cmd(
     city_gml: Path = typer.Argument(..., exists=True, dir_okay=False, help="CityGML file (1.0, 2.0 or 3.0)"),
     name: str | None = typer.Option(None, "--name", help="model name (default: the file's stem)"),
     replace: bool = typer.Option(False, "--replace", help="replace an existing model of that name"),
     checks: str = typer.Option("fast", "--checks", help="geometry checks: fast, full or none"),
+    progress: bool = typer.Option(False, "--progress", help="print progress lines on stderr"),
     database_url: str | None = DbUrl,
 ) -> None:
-    """Import a CityGML file into the city model database (streamed, in batches)."""
+    """Import a CityGML file into the city model database (streamed; all or nothing: an error,
+    Ctrl-C, SIGTERM or a killed process leaves nothing behind)."""
     from db.errors import CityDBError
-    from db.importer import ImportOptions, import_citygml
+    from db.importer import ImportInterrupted, ImportOptions, ImportProgress, import_citygml
+
+    def show(p: ImportProgress) -> None:
+        print(
+            f"progress: {p.stage} {p.buildings} buildings {p.parts} parts {p.surfaces} surfaces "
+            f"{p.seconds:.1f} s{_rates(p.buildings, p.parts, p.seconds)}",
+            file=sys.stderr,
+            flush=True,
+        )
 
     try:
         s = import_citygml(
-            _url(database_url), city_gml, name=name, replace=replace, options=ImportOptions(checks=checks)
+            _url(database_url),
+            city_gml,
+            name=name,
+            replace=replace,
+            options=ImportOptions(checks=checks),
+            progress=show if progress else None,
         )
+    except ImportInterrupted as exc:
+        err_console.print(f"[red]import stopped:[/red] {exc}")
+        raise typer.Exit(128 + exc.signum) from None
     except (CityDBError, ValueError) as exc:
         console.print(f"[red]import failed:[/red] {exc}")
         raise typer.Exit(1) from exc
-    rate = (s.buildings + s.parts) / s.seconds if s.seconds > 0 else float("nan")
     console.print(
         f"model [bold]{s.name}[/bold] (id {s.model_id}, SRID {s.srid}{', replaced' if s.replaced else ''}): "
         f"{s.buildings} buildings, {s.parts} parts, {s.surfaces} surfaces, {s.appearances} appearances "
-        f"in {s.seconds:.1f} s ({rate:.0f} buildings/s)"
+        f"in {s.seconds:.1f} s{_rates(s.buildings, s.parts, s.seconds)}"
     )
 
 
