@@ -278,10 +278,12 @@ def _start_model(
     if not free:
         raise ModelExistsError(f"city model {name!r} is being imported by another session")
     # who we are for pg_stat_activity; the server notices a vanished client within a second
+    # (PostgreSQL 14+), even while a statement of ours runs or waits for a lock
     conn.execute(
         text(
             "SELECT set_config('application_name', :app, true), "
-            "set_config('client_connection_check_interval', '1000', true)"
+            "CASE WHEN current_setting('server_version_num')::int >= 140000 "
+            "THEN set_config('client_connection_check_interval', '1000', true) END"
         ),
         {"app": f"citytherm import {name}"[:63]},
     )
