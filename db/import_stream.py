@@ -152,7 +152,7 @@ class BatchStream:
         self.batch_size = batch_size
         self.transform = transform
         self.huge_tree = huge_tree
-        self.parallel = parallel
+        self.parallel = parallel and bool(sys.executable)  # an embedded interpreter cannot start one
         self.peak_rss_mb: float | None = None
         self._proc: subprocess.Popen[bytes] | None = None
 

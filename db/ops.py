@@ -41,6 +41,7 @@ __all__ = [
     "pg_text_array",
     "remove_dead_imports",
     "reserve_ids",
+    "running_imports",
     "spatial_index_problems",
 ]
 
@@ -250,6 +251,20 @@ def remove_dead_imports(engine: Engine, *, dry_run: bool = False) -> list[DeadIm
                 conn.execute(_text("SELECT pg_advisory_unlock(:ns, :m)"), key)
                 conn.commit()
     return found
+
+
+def running_imports(engine: Engine) -> list[tuple[int, str, str, object]]:
+    """(backend pid, model name, state, transaction start) of the imports running now (their
+    sessions name themselves `citytherm import <name>`)."""
+    with engine.connect() as conn:
+        rows = conn.execute(
+            _text(
+                "SELECT pid, substr(application_name, 18), state, xact_start FROM pg_stat_activity "
+                "WHERE datname = current_database() AND application_name LIKE 'citytherm import %' "
+                "ORDER BY xact_start"
+            )
+        ).all()
+    return [tuple(r) for r in rows]
 
 
 @dataclass(frozen=True)

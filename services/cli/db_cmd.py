@@ -62,15 +62,18 @@ def repair_cmd(
 ) -> None:
     """Remove city models left 'importing' by imports that died, rebuild missing or invalid spatial
     indexes (concurrently: the tables stay usable); report what was found and done."""
-    from db.ops import ensure_spatial_indexes, remove_dead_imports
+    from db.ops import ensure_spatial_indexes, remove_dead_imports, running_imports
     from db.session import make_engine
 
     engine = make_engine(_url(database_url))
     try:
         models = remove_dead_imports(engine, dry_run=dry_run)
         indexes = ensure_spatial_indexes(engine, dry_run=dry_run)
+        running = running_imports(engine)
     finally:
         engine.dispose()
+    for pid, name, state, since in running:
+        console.print(f"import of [bold]{name}[/bold] running (backend pid {pid}, {state}, since {since})")
     for m in models:
         what = {"removed": "removed", "dead": "would remove", "in progress": "left alone (import running)"}
         console.print(

@@ -307,7 +307,7 @@ def test_reader_keeps_its_index_during_an_import_and_the_name_imports_again(
     queries use the GiST indexes, are never blocked, and see the model all or nothing (the
     replicated file's first copy lies exactly on the keep model's box: before the commit none of
     its surfaces is there, after it all); a second import of the name is refused at once while
-    the first runs."""
+    the first runs, and `db repair` lists it as running."""
     name = "faults-sigterm"  # killed above
     with psycopg.connect(migrated_db, autocommit=True) as c:
         srid, x0, y0, x1, y1 = c.execute(
@@ -335,6 +335,8 @@ def test_reader_keeps_its_index_during_an_import_and_the_name_imports_again(
         reader.start()
         with pytest.raises(ModelExistsError, match="being imported by another session"):
             import_citygml(db_engine, NRW, name=name, options=ImportOptions(parallel_read=False))
+        res = CliRunner().invoke(app, ["db", "repair", "--dry-run", "--database-url", migrated_db])
+        assert res.exit_code == 0 and f"import of {name} running" in " ".join(res.output.split()), res.output
         code, out, err = imp.finish()
     finally:
         stop.set()
