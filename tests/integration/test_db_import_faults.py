@@ -224,7 +224,8 @@ def test_kill_while_writing_batches(migrated_db, db_engine, big_file, keep_model
     imp = _CliImport(migrated_db, big_file, name)
     written, _ = imp.wait_progress("writing", max(1, int(share * BUILDINGS)))
     assert written < BUILDINGS  # caught while writing
-    assert _children(imp.proc.pid), "the big file is read by a reader process"
+    if share < 0.5:  # later, the reader may have sent its last batch and ended already
+        assert _children(imp.proc.pid), "the big file is read by a reader process"
     # the import's rows are in its own transaction: nobody else sees them
     assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE name = %s", (name,)) == 0
     code, err, readers = _kill(imp, sig)
