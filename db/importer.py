@@ -163,10 +163,10 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 class _Interrupts:
     """While active (main thread only), SIGINT/SIGTERM/SIGHUP raise `ImportInterrupted` once;
-    inside `deferred()` (the commit, the clean-up) a signal is only noted. A signal noted before
-    any interrupt is delivered again when the old handlers are back (after a commit: the model is
-    complete, the process then stops as it was told); after an interrupt, further signals are
-    dropped (the import is stopping already)."""
+    inside `deferred()` (the clean-up) and from the commit on (`depth` raised for good) a signal
+    is only noted. A signal noted before any interrupt is delivered again when the old handlers
+    are back (after a commit: the model is complete, the process then stops as it was told); after
+    an interrupt, further signals are dropped (the import is stopping already)."""
 
     def __init__(self) -> None:
         self.old: dict[int, Any] = {}
@@ -512,8 +512,10 @@ def _import(
             _finish_model(conn, model_id, name, counts, late, image_dir=image_dir)
             t_commit = time.perf_counter()
             timings["finish"] = t_commit - t_fin
-            with interrupts.deferred():
-                conn.commit()
+            # from the commit on a signal waits until the import is over: it must not report a
+            # committed model as rolled back
+            interrupts.depth += 1
+            conn.commit()
             timings["commit"] = time.perf_counter() - t_commit
         except BaseException as exc:
             with interrupts.deferred():

@@ -494,3 +494,42 @@ def test_reader_process_dies_with_its_parent(migrated_db, big_file) -> None:
         parent.kill()
         parent.wait()
     _wait_until("reader process gone", lambda: not _alive(reader))
+
+
+def test_sigterm_in_process_rolls_back_and_restores_handlers(migrated_db, db_engine, monkeypatch) -> None:
+    """A library caller's import (main thread) stopped by SIGTERM in its second batch:
+    `ImportInterrupted`, nothing written, the default handlers back afterwards."""
+    import db.importer as importer_mod
+
+    real = importer_mod._write_lines
+    calls = {"n": 0}
+
+    def second_batch_signalled(conn, lines, model_id, ordinal0, **kw):
+        calls["n"] += 1
+        real(conn, lines, model_id, ordinal0, **kw)
+        if calls["n"] == 2:
+            signal.raise_signal(signal.SIGTERM)
+
+    monkeypatch.setattr(importer_mod, "_write_lines", second_batch_signalled)
+    before = _one(migrated_db, "SELECT count(*) FROM building")
+    with pytest.raises(importer_mod.ImportInterrupted) as info:
+        import_citygml(db_engine, NRW, name="faults-inproc", options=ImportOptions(batch_size=20))
+    assert info.value.signum == signal.SIGTERM and calls["n"] == 2
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE name = 'faults-inproc'") == 0
+    assert _one(migrated_db, "SELECT count(*) FROM building") == before
+
+
+def test_a_signal_from_the_commit_on_waits_for_the_end() -> None:
+    """After the commit a signal must not turn into `ImportInterrupted` (the model is complete):
+    it is delivered again once the import's handlers are gone."""
+    from db.importer import ImportInterrupted, _Interrupts
+
+    with pytest.raises(KeyboardInterrupt), _Interrupts() as intr:
+        intr.depth += 1  # as from the commit on
+        signal.raise_signal(signal.SIGINT)
+        assert intr.pending == signal.SIGINT and not intr.fired
+    with pytest.raises(ImportInterrupted), _Interrupts() as intr:
+        signal.raise_signal(signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
