@@ -11,8 +11,9 @@ database connection of this process) which sends the transformed batches as leng
 pickles through a pipe (its standard output; at most one batch waits in the pipe, so memory stays
 bounded). The reader dies with its parent: it asks the kernel for SIGKILL when the thread that
 started it dies (Linux `PR_SET_PDEATHSIG`), checks that this parent is still the one that started
-it, and stops at the first write into a pipe nobody reads any more. It ignores SIGINT (a Ctrl-C
-reaches the whole process group: the importer decides and stops the reader). Use the stream as a
+it, and stops at the first write into a pipe nobody reads any more. It ignores SIGINT, SIGTERM
+and SIGHUP (a Ctrl-C reaches the whole process group, systemd signals the whole control group:
+the importer decides, and stops the reader with SIGKILL). Use the stream as a
 context manager (or call `close()`): leaving it stops the reader at once. Errors of the reader
 are raised here (`CityGMLError` for a bad file); `peak_rss_mb` of the reader process is available
 after the stream ends.
@@ -108,7 +109,8 @@ def _send(out: BinaryIO, item: tuple[str, Any]) -> None:
 def _child_main(cfg: dict[str, Any]) -> None:
     """Reader process: every batch, then ("done", peak RSS) or ("error", (kind, message, is_citygml))."""
     _die_with_parent(cfg["parent_pid"])
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     # frames go to a private copy of stdout; stray prints of libraries go to stderr instead
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)

@@ -117,6 +117,7 @@ class _CliImport:
             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             # the importer handles SIGINT only when it is not ignored (a background shell ignores it)
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+            start_new_session=True,  # its own process group, to be signalled as a whole
         )  # fmt: skip
         self.lines: queue.Queue[str | None] = queue.Queue()
         self.stderr: list[str] = []
@@ -167,10 +168,14 @@ class _CliImport:
         return self.proc.returncode, out, "".join(self.stderr)
 
 
-def _kill(imp: _CliImport, sig: int) -> tuple[int, str, list[int]]:
-    """Send `sig`, wait for the importer's end; (exit code, stderr, reader processes it had)."""
+def _kill(imp: _CliImport, sig: int, group: bool = False) -> tuple[int, str, list[int]]:
+    """Send `sig` (to the importer's whole process group, as systemd does, when `group`), wait
+    for the importer's end; (exit code, stderr, reader processes it had)."""
     readers = _children(imp.proc.pid)
-    imp.proc.send_signal(sig)
+    if group:
+        os.killpg(imp.proc.pid, sig)
+    else:
+        imp.proc.send_signal(sig)
     code, _, err = imp.finish()
     return code, err, readers
 
@@ -215,12 +220,17 @@ def _assert_nothing_left(url: str, imp: _CliImport, readers: list[int], name: st
 
 
 @pytest.mark.parametrize(
-    ("sig", "share"),
-    [(signal.SIGINT, 0.0), (signal.SIGTERM, 0.35), (signal.SIGKILL, 0.65)],
-    ids=["sigint-first-batch", "sigterm-35pct", "sigkill-65pct"],
+    ("sig", "share", "group"),
+    [
+        (signal.SIGINT, 0.0, False),
+        (signal.SIGTERM, 0.35, False),
+        (signal.SIGTERM, 0.5, True),
+        (signal.SIGKILL, 0.65, False),
+    ],
+    ids=["sigint-first-batch", "sigterm-35pct", "sigterm-process-group-50pct", "sigkill-65pct"],
 )
-def test_kill_while_writing_batches(migrated_db, db_engine, big_file, keep_model, sig, share) -> None:
-    name = f"faults-{signal.Signals(sig).name.lower()}"
+def test_kill_while_writing_batches(migrated_db, db_engine, big_file, keep_model, sig, share, group) -> None:
+    name = f"faults-{signal.Signals(sig).name.lower()}{'-group' if group else ''}"
     imp = _CliImport(migrated_db, big_file, name)
     written, _ = imp.wait_progress("writing", max(1, int(share * BUILDINGS)))
     assert written < BUILDINGS  # caught while writing
@@ -228,7 +238,7 @@ def test_kill_while_writing_batches(migrated_db, db_engine, big_file, keep_model
         assert _children(imp.proc.pid), "the big file is read by a reader process"
     # the import's rows are in its own transaction: nobody else sees them
     assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE name = %s", (name,)) == 0
-    code, err, readers = _kill(imp, sig)
+    code, err, readers = _kill(imp, sig, group)
     if sig == signal.SIGKILL:
         assert code == -signal.SIGKILL
     else:
