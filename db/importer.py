@@ -32,17 +32,13 @@ this importer never commits such a row, older versions did), as `citytherm db re
 from __future__ import annotations
 
 import logging
-import signal
-import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from os import PathLike
 from pathlib import Path
-from types import FrameType, TracebackType
 from typing import Any
 
 import numpy as np
@@ -56,6 +52,7 @@ from db.citygml import reader as citygml_reader
 from db.errors import InputDataError, ModelExistsError
 from db.geomcodec import encode_envelope
 from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
+from db.import_signals import ImportInterrupted, Interrupts, abandon
 from db.import_stream import BatchStream
 from db.ops import (
     IMPORT_MODEL_LOCK,
@@ -143,70 +140,6 @@ class ImportProgress:
     parts: int
     surfaces: int
     seconds: float
-
-
-class ImportInterrupted(BaseException):
-    """The import was stopped by a signal (SIGINT, SIGTERM, SIGHUP) and rolled back: nothing of it
-    was written. A BaseException, like KeyboardInterrupt, so that `except Exception` handlers let
-    it through; `signum` is the signal's number."""
-
-    def __init__(self, signum: int) -> None:
-        self.signum = signum
-        super().__init__(
-            f"import interrupted by {signal.Signals(signum).name}: rolled back, nothing was written"
-        )
-
-
-#: signals turned into `ImportInterrupted` during an import (when nobody else handles them).
-_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-
-class _Interrupts:
-    """While active (main thread only), SIGINT/SIGTERM/SIGHUP raise `ImportInterrupted` once;
-    inside `deferred()` (the clean-up) and from the commit on (`depth` raised for good) a signal
-    is only noted. A signal noted before any interrupt is delivered again when the old handlers
-    are back (after a commit: the model is complete, the process then stops as it was told); after
-    an interrupt, further signals are dropped (the import is stopping already)."""
-
-    def __init__(self) -> None:
-        self.old: dict[int, Any] = {}
-        self.fired = False
-        self.pending: int | None = None
-        self.depth = 0
-        #: the import's connection: a statement running on it is cancelled by the interrupt
-        self.conn: psycopg.Connection | None = None
-
-    def __enter__(self) -> _Interrupts:
-        if threading.current_thread() is threading.main_thread():
-            for sig in _STOP_SIGNALS:
-                current = signal.getsignal(sig)
-                if current in (signal.SIG_DFL, signal.default_int_handler):
-                    self.old[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        for sig, handler in self.old.items():
-            signal.signal(sig, handler)
-        if self.pending is not None and not self.fired:
-            signal.raise_signal(self.pending)
-
-    def _handle(self, signum: int, frame: FrameType | None) -> None:
-        if self.fired or self.depth:
-            self.pending = self.pending or signum
-            return
-        self.fired = True
-        _cancel_running(self.conn)
-        raise ImportInterrupted(signum)
-
-    @contextmanager
-    def deferred(self) -> Iterator[None]:
-        self.depth += 1
-        try:
-            yield
-        finally:
-            self.depth -= 1
 
 
 def model_srid(srs_name: str | None) -> int:
@@ -317,35 +250,6 @@ def _start_model(
         if image_dir is not None:
             store_appearance_images(conn, app_ids, image_dir)
     return model_id, replaced
-
-
-def _cancel_running(raw: psycopg.Connection | None) -> None:
-    """Ask the server to cancel the statement running on `raw`, if one is (a closed connection
-    alone is noticed only when the statement ends, or after `client_connection_check_interval`)."""
-    if raw is None or raw.closed or raw.info.transaction_status != psycopg.pq.TransactionStatus.ACTIVE:
-        return
-    try:
-        raw.cancel_safe(timeout=5.0)
-    except Exception:  # best effort: closing the connection ends the session anyway
-        log.debug("cancel request failed", exc_info=True)
-
-
-def _abandon(conn: Connection) -> None:
-    """Roll the import's transaction back. When a statement may still be running (a signal came
-    in the middle of it: SQLAlchemy then has dropped the connection already), cancel it and drop
-    the connection: the server rolls back what a closed connection wrote."""
-    if conn.invalidated:
-        return
-    try:
-        raw = conn.connection.driver_connection
-        if raw is not None and raw.info.transaction_status == psycopg.pq.TransactionStatus.ACTIVE:
-            _cancel_running(raw)
-            conn.invalidate()
-            return
-        conn.rollback()
-    except Exception:  # the connection is unusable: closing it rolls back on the server
-        log.debug("rollback failed; dropping the connection", exc_info=True)
-        conn.invalidate()
 
 
 def _finish_model(
@@ -471,7 +375,7 @@ def _import(
         huge_tree=opts.huge_tree,
         parallel=parallel,
     )
-    with _Interrupts() as interrupts, stream, engine.connect() as conn:
+    with Interrupts() as interrupts, stream, engine.connect() as conn:
         try:
             stream.start()  # the reader parses while the database is prepared
             interrupts.conn = conn.connection.driver_connection
@@ -519,7 +423,7 @@ def _import(
             timings["commit"] = time.perf_counter() - t_commit
         except BaseException as exc:
             with interrupts.deferred():
-                _abandon(conn)
+                abandon(conn)
                 stream.close()
             if isinstance(exc, IntegrityError | psycopg.errors.IntegrityError):
                 orig = getattr(exc, "orig", None) or exc

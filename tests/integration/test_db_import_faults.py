@@ -470,6 +470,18 @@ def test_next_import_removes_a_dead_import(migrated_db, db_engine, dead_import) 
         c.execute("DELETE FROM city_model WHERE id = %s", (s.model_id,))
 
 
+def _fd_targets(pid: int) -> set[str]:
+    """What the open file descriptors of process `pid` point to (`socket:[...]`, paths); a
+    descriptor closed while it is listed is passed over."""
+    out = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            out.add(os.readlink(f"/proc/{pid}/fd/{fd}"))
+        except FileNotFoundError:
+            continue
+    return out
+
+
 def test_reader_process_dies_with_its_parent(migrated_db, big_file) -> None:
     """The reader process started by a parent holding a database connection has no connection of
     it; when the parent is SIGKILLed (no clean-up runs), the reader dies too."""
@@ -496,9 +508,9 @@ def test_reader_process_dies_with_its_parent(migrated_db, big_file) -> None:
         assert parent.stdout is not None
         reader = int(parent.stdout.readline())
         assert _alive(reader)
-        own = {os.readlink(f"/proc/{parent.pid}/fd/{fd}") for fd in os.listdir(f"/proc/{parent.pid}/fd")}
+        own = _fd_targets(parent.pid)
         assert [f for f in own if f.startswith("socket:")]  # the parent's connection
-        fds = {os.readlink(f"/proc/{reader}/fd/{fd}") for fd in os.listdir(f"/proc/{reader}/fd")}
+        fds = _fd_targets(reader)
         assert not [f for f in fds if f.startswith("socket:")], fds  # no connection inherited
     finally:
         parent.kill()
@@ -534,12 +546,12 @@ def test_sigterm_in_process_rolls_back_and_restores_handlers(migrated_db, db_eng
 def test_a_signal_from_the_commit_on_waits_for_the_end() -> None:
     """After the commit a signal must not turn into `ImportInterrupted` (the model is complete):
     it is delivered again once the import's handlers are gone."""
-    from db.importer import ImportInterrupted, _Interrupts
+    from db.import_signals import ImportInterrupted, Interrupts
 
-    with pytest.raises(KeyboardInterrupt), _Interrupts() as intr:
+    with pytest.raises(KeyboardInterrupt), Interrupts() as intr:
         intr.depth += 1  # as from the commit on
         signal.raise_signal(signal.SIGINT)
         assert intr.pending == signal.SIGINT and not intr.fired
-    with pytest.raises(ImportInterrupted), _Interrupts() as intr:
+    with pytest.raises(ImportInterrupted), Interrupts() as intr:
         signal.raise_signal(signal.SIGINT)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
