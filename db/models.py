@@ -219,6 +219,8 @@ class Job(Base):
     timings_s: Mapped[dict[str, Any]] = mapped_column(JSONB, default=dict)
     error: Mapped[str | None] = mapped_column(Text)
     results_location: Mapped[str | None] = mapped_column(Text)
+    #: the stage the job is in: accepted, ingest, calibrate, orient, plan, units, finish.
+    stage: Mapped[str] = mapped_column(Text, server_default="accepted")
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
@@ -234,6 +236,7 @@ class JobUnit(Base):
     __table_args__ = (
         UniqueConstraint("job_id", "building_id", name="uq_job_unit_job_building"),
         Index("ix_job_unit_building", "building_id"),
+        Index("ix_job_unit_job_status", "job_id", "status"),
         CheckConstraint(f"status IN {JOB_STATUSES!r}", name="ck_job_unit_status"),
     )
 
@@ -247,6 +250,10 @@ class JobUnit(Base):
     error: Mapped[str | None] = mapped_column(Text)
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    #: Celery task id of the unit's last delivery (a dismissal revokes it).
+    task_id: Mapped[str | None] = mapped_column(Text)
+    #: when the unit last started running (the sweeper re-queues units running too long).
+    heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
 
 
 class FramePose(Base):
@@ -447,3 +454,68 @@ class ThermalAnomaly(Base):
     area_m2: Mapped[float] = mapped_column(Double)
     peak_delta_k: Mapped[float] = mapped_column(Double)
     mean_delta_k: Mapped[float] = mapped_column(Double)
+
+
+#: API key scopes: `read` (GET), `submit` (uploads, jobs), `admin` (keys, deletion, paths).
+API_SCOPES: tuple[str, ...] = ("read", "submit", "admin")
+
+
+class ApiKey(Base):
+    """A bearer API key of the HTTP API: only its SHA-256 is stored (and its first characters,
+    to tell keys apart in lists)."""
+
+    __tablename__ = "api_key"
+    __table_args__ = (
+        CheckConstraint("scopes <@ ARRAY['read', 'submit', 'admin']::text[]", name="ck_api_key_scopes"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(Text)
+    prefix: Mapped[str] = mapped_column(Text)
+    key_hash: Mapped[str] = mapped_column(Text, unique=True)
+    scopes: Mapped[list[str]] = mapped_column(ARRAY(Text))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+    revoked_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+
+
+class ModelImport(Base):
+    """A CityGML upload of the HTTP API and its import by a worker; its id is the API's model id.
+    `city_model_id` is set once the import is complete (status `ready`)."""
+
+    __tablename__ = "model_import"
+    __table_args__ = (
+        CheckConstraint("status IN ('importing', 'ready', 'failed')", name="ck_model_import_status"),
+        Index(
+            "uq_model_import_name_active", "name", unique=True, postgresql_where=text("status <> 'failed'")
+        ),
+    )
+
+    id: Mapped[int] = mapped_column(BigInteger, primary_key=True)
+    name: Mapped[str] = mapped_column(Text)
+    status: Mapped[str] = mapped_column(Text)
+    message: Mapped[str | None] = mapped_column(Text)
+    upload_path: Mapped[str | None] = mapped_column(Text)
+    city_model_id: Mapped[int | None] = mapped_column(ForeignKey("city_model.id", ondelete="SET NULL"))
+    bytes: Mapped[int] = mapped_column(BigInteger, server_default="0")
+    progress: Mapped[float] = mapped_column(Double, server_default="0")
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+
+
+class SequenceUpload(Base):
+    """A resumable, chunked sequence upload of the HTTP API; its id is the API's sequence id.
+    `parts` maps part number -> {size, md5}; `sequence_id` is set once committed."""
+
+    __tablename__ = "sequence_upload"
+    __table_args__ = (
+        CheckConstraint("status IN ('open', 'committed', 'failed')", name="ck_sequence_upload_status"),
+    )
+
+    id: Mapped[uuid.UUID] = mapped_column(Uuid, primary_key=True, default=uuid.uuid4)
+    status: Mapped[str] = mapped_column(Text)
+    parts: Mapped[dict[str, Any]] = mapped_column(JSONB, server_default=text("'{}'::jsonb"))
+    bytes: Mapped[int] = mapped_column(BigInteger, server_default="0")
+    message: Mapped[str | None] = mapped_column(Text)
+    sequence_id: Mapped[int | None] = mapped_column(ForeignKey("sequence.id", ondelete="SET NULL"))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())

@@ -21,7 +21,8 @@ pytestmark = pytest.mark.integration
 MIG_DB = f"{TEST_DB}_migrations"
 TABLES = {
     "city_model", "building", "surface", "sequence", "frame", "job", "job_unit", "frame_pose", "appearance",
-    "surface_data", "tex_image", "texture_param", "surface_thermal", "thermal_anomaly",
+    "surface_data", "tex_image", "texture_param", "surface_thermal", "thermal_anomaly", "api_key",
+    "model_import", "sequence_upload",
 }  # fmt: skip
 VIEWS = {"facade_thermal", "building_thermal"}
 
