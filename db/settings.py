@@ -27,6 +27,24 @@ class Settings(BaseSettings):
     storage_dir: Path = Field(Path("./citytherm-data"), description="Uploaded packages and job results.")
     max_package_bytes: int = Field(20 * 1024**3, description="Largest expanded size of a sequence archive.")
     max_package_members: int = Field(200_000, description="Most members in a sequence archive.")
+    database_srid: int = Field(
+        25832,
+        description="EPSG code of every geometry column, set when the schema is created "
+        "(`citytherm db upgrade`); models in another CRS are transformed on import.",
+    )
+    # the service (docs/service.md)
+    api_read_open: bool = Field(False, description="GET requests need no API key.")
+    max_upload_bytes: int = Field(20 * 1024**3, description="Largest CityGML upload or sequence upload.")
+    min_free_bytes: int = Field(
+        1024**3, description="Uploads are refused (507) when the storage would keep less free space."
+    )
+    upload_ttl_s: float = Field(24 * 3600.0, description="Open uploads idle longer are removed.")
+    unit_timeout_s: float = Field(
+        3600.0, description="A unit running longer is re-queued by the sweeper (and its task time limit)."
+    )
+    sweep_interval_s: float = Field(30.0, description="How often the sweeper runs.")
+    task_max_retries: int = Field(5, description="Retries of a task after a transient error.")
+    worker_concurrency: int = Field(1, description="Processes per worker (`citytherm worker`).")
 
 
 def get_settings() -> Settings:
