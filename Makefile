@@ -8,7 +8,7 @@ SYSSTAMP:= $(VENV)/.citytherm-system
 
 .PHONY: install system test lint unit integration demo bench clean
 
-$(SYSSTAMP):
+$(SYSSTAMP): .ci/system-deps.sh
 	bash .ci/system-deps.sh
 	@mkdir -p $(VENV) && touch $@
 

@@ -32,9 +32,12 @@ from db.appearance_rows import load_texture_params, surface_data_from_rows
 from db.citygml.writer import write_citygml
 from db.errors import CityDBError, NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
+from db.model_load import assemble_buildings, building_rows, surface_polygons
 from db.results_folder.write import anomalies_document, write_json
 from db.session import as_engine
-from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture, Polygon, Ring
+from db.srid import database_srid, from_database
+from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture
+from workers.pipeline.geometry.transform import CrsTransform, transform_building
 
 __all__ = ["ExportOptions", "ExportSummary", "export_citygml"]
 
@@ -74,6 +77,7 @@ class _Filter:
     bbox: tuple[float, float, float, float] | None
     srid: int
     include_imported: bool
+    db_srid: int = 0
 
     def appearance_sql(self, alias: str = "a") -> str:
         """SQL condition selecting the exported appearances."""
@@ -87,7 +91,8 @@ class _Filter:
         return " AND ".join(cond) if cond else "TRUE"
 
     def params(self) -> dict[str, Any]:
-        p: dict[str, Any] = {"m": self.model_id, "theme": self.theme, "job": self.job_id, "srid": self.srid}
+        p: dict[str, Any] = {"m": self.model_id, "theme": self.theme, "job": self.job_id}
+        p.update(srid=self.srid, db_srid=self.db_srid)
         if self.bbox is not None:
             p.update(dict(zip(("x0", "y0", "x1", "y1"), self.bbox, strict=True)))
         return p
@@ -97,7 +102,8 @@ class _Filter:
         with a non-empty appearance of it (the buildings the job textured)."""
         sql = "SELECT b.id FROM building b WHERE b.city_model_id = :m AND NOT b.is_part"
         if self.bbox is not None:
-            sql += " AND b.envelope && ST_MakeEnvelope(:x0, :y0, :x1, :y1, :srid)"
+            # the box is in the model's CRS, the envelopes in the database SRID
+            sql += " AND b.envelope && ST_Transform(ST_MakeEnvelope(:x0, :y0, :x1, :y1, :srid), :db_srid)"
         if self.theme is not None or self.job_id is not None:
             sql += (
                 " AND EXISTS (SELECT 1 FROM appearance a JOIN building pb ON pb.id = a.building_id"
@@ -173,31 +179,6 @@ class _Images:
         self.count += 1
 
 
-def _polygon(row: Mapping[str, Any]) -> Polygon:
-    if row["wkb"] is not None:
-        coords = polygon_rings_from_wkb(row["wkb"])
-    else:
-        coords = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in row["raw_rings"]]
-    rings = []
-    for c, rid, gen, closed in zip(
-        coords, row["ring_ids"], row["ring_generated"], row["ring_closed"], strict=True
-    ):
-        if not closed and row["wkb"] is not None:
-            c = c[:-1]
-        rings.append(Ring(id=rid, coords=c, generated_id=gen))
-    return Polygon(
-        id=row["gml_id"],
-        exterior=rings[0],
-        interiors=tuple(rings[1:]),
-        surface_class=row["surface_class"],
-        lod=row["lod"],
-        surface_id=row["surface_gml_id"],
-        in_solid=row["in_solid"],
-        generated_id=row["generated_id"],
-        collection_id=row["collection_id"],
-    )
-
-
 def _appearances(
     conn: Connection, f: _Filter, building_rows: Sequence[int], images: _Images
 ) -> tuple[dict[int, list[Appearance]], dict[int, list[Appearance]]]:
@@ -271,57 +252,12 @@ def _batch(
     images: _Images,
 ) -> list[Building]:
     """Rebuild the top-level buildings `roots` (parts nested) with their appearances."""
-    brows = (
-        conn.execute(
-            text(
-                "SELECT id, gml_id, parent_id, is_part, name, srs_name, generated_id, attributes "
-                "FROM building WHERE root_id = ANY(:r) ORDER BY ordinal"
-            ),
-            {"r": list(roots)},
-        )
-        .mappings()
-        .all()
-    )
+    brows = building_rows(conn, roots)
     bids = [b["id"] for b in brows]
-    polys: dict[int, list[Polygon]] = defaultdict(list)
-    for s in (
-        conn.execute(
-            text(
-                "SELECT building_id, gml_id, generated_id, ring_ids, ring_generated, ring_closed, "
-                "surface_class, surface_gml_id, lod, in_solid, collection_id, raw_rings, "
-                "ST_AsBinary(geometry) AS wkb "
-                "FROM surface WHERE building_id = ANY(:b) ORDER BY building_id, ordinal"
-            ),
-            {"b": bids},
-        )
-        .mappings()
-        .all()
-    ):
-        polys[s["building_id"]].append(_polygon(s))
+    polys = surface_polygons(conn, bids)
     own, extra = _appearances(conn, f, bids, images)
-    children: dict[int, list[int]] = defaultdict(list)
-    for b in brows:
-        if b["parent_id"] is not None:
-            children[b["parent_id"]].append(b["id"])
-    by_id = {b["id"]: b for b in brows}
-
-    def build(bid: int, parent_gml: str | None) -> Building:
-        r = by_id[bid]
-        return Building(
-            id=r["gml_id"],
-            polygons=tuple(polys.get(bid, ())),
-            parts=tuple(build(c, r["gml_id"]) for c in children.get(bid, ())),
-            attributes=dict(r["attributes"] or {}),
-            is_part=r["is_part"],
-            parent_id=parent_gml,
-            srs_name=r["srs_name"],
-            # the file's own appearances, then the jobs' (the writer's order for extra appearances)
-            appearances=(*own.get(bid, ()), *extra.get(bid, ())),
-            name=r["name"],
-            generated_id=r["generated_id"],
-        )
-
-    return [build(rid, None) for rid in roots if rid in by_id]
+    # the file's own appearances, then the jobs' (the writer's order for extra appearances)
+    return assemble_buildings(roots, brows, polys, lambda bid: (*own.get(bid, ()), *extra.get(bid, ())))
 
 
 def export_citygml(
@@ -350,16 +286,24 @@ def export_citygml(
         # many small indexed queries: parallel workers only add start-up time
         conn.exec_driver_sql("SET LOCAL max_parallel_workers_per_gather = 0")
         m = _model(conn, model)
+        db_srid = database_srid(conn)
+        back = from_database(m["srs_name"], db_srid)
         f = _Filter(
             model_id=m["id"],
             theme=theme,
             job_id=job_id,
             srid=m["srid"],
+            db_srid=db_srid,
             include_imported=opts.include_imported,
             bbox=None if bbox is None else tuple(float(v) for v in bbox),  # type: ignore[arg-type]
         )
         roots = [r[0] for r in conn.execute(text(f.building_sql() + " ORDER BY b.ordinal"), f.params()).all()]
         envelope = _extent(conn, f)
+        if envelope is not None and not back.identity:  # the box around the corners moved back
+            lo, hi = envelope
+            corners = np.array(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij")).reshape(3, -1).T
+            moved = back.points(corners)
+            envelope = moved.min(axis=0), moved.max(axis=0)
         model_apps = (
             conn.execute(
                 text(
@@ -376,7 +320,8 @@ def export_citygml(
 
         def stream() -> Iterator[Building]:
             for i in range(0, len(roots), opts.batch_size):
-                yield from _batch(conn, f, roots[i : i + opts.batch_size], images)
+                for b in _batch(conn, f, roots[i : i + opts.batch_size], images):
+                    yield transform_building(b, back, set_srs=False)
 
         gml = out / opts.gml_name
         n = write_citygml(
@@ -387,17 +332,18 @@ def export_citygml(
             model_appearances=[*own_model.get(None, []), *extra_model.get(None, [])],  # type: ignore[call-overload]
             name=m["gml_name"],
         )
-        n_anomalies = _write_anomalies(conn, f, roots, m["srs_name"], out / "anomalies.geojson")
+        n_anomalies = _write_anomalies(conn, f, roots, m["srs_name"], out / "anomalies.geojson", back)
     return ExportSummary(
         path=gml, buildings=n, textures=images.count, seconds=time.perf_counter() - t0, anomalies=n_anomalies
     )
 
 
 def _write_anomalies(
-    conn: Connection, f: _Filter, roots: Sequence[int], srs_name: str | None, path: Path
+    conn: Connection, f: _Filter, roots: Sequence[int], srs_name: str | None, path: Path, back: CrsTransform
 ) -> int:
-    """`anomalies.geojson` (results format) for the anomalies of the exported job appearances;
-    written when there are any, or when a theme or job was asked for. Returns their number."""
+    """`anomalies.geojson` (results format) for the anomalies of the exported job appearances, in
+    the model's CRS (`back`: from the database SRID); written when there are any, or when a theme or
+    job was asked for. Returns their number."""
     rows = conn.execute(
         text(
             "SELECT b.gml_id AS building, s.gml_id AS surface, ST_AsBinary(ta.outline) AS outline, "
@@ -412,6 +358,7 @@ def _write_anomalies(
     features = []
     for r in rows:
         rings = polygon_rings_from_wkb(r["outline"]) if r["outline"] is not None else []
+        rings = [back.points(ring) for ring in rings]
         features.append(
             {
                 "type": "Feature",

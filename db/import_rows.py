@@ -22,6 +22,7 @@ from db.geomcodec import encode_envelope, encode_footprints, encode_polygons
 from db.ops import copy_field, pg_bool_array, pg_text_array
 from db.surface_checks import jsonable, surface_checks
 from workers.pipeline.geometry.citymodel import Appearance, Building, Polygon
+from workers.pipeline.geometry.transform import CrsTransform, transform_building
 
 __all__ = ["BUILDING_TAIL", "SURFACE_TAIL", "BatchLines", "batch_lines"]
 
@@ -82,8 +83,14 @@ class BatchLines:
     polygon_ids: list[str]
 
 
-def batch_lines(tops: Sequence[Building], srid: int, checks: str) -> BatchLines:
-    """COPY text of a batch of top-level buildings (see the module docstring)."""
+def batch_lines(
+    tops: Sequence[Building], srid: int, checks: str, to_db: CrsTransform | None = None
+) -> BatchLines:
+    """COPY text of a batch of top-level buildings (see the module docstring); `to_db`
+    transforms the buildings from the model's CRS into the database SRID `srid` first (the
+    buildings keep their `srs_name` as read)."""
+    if to_db is not None and not to_db.identity:
+        tops = [transform_building(t, to_db, set_srs=False) for t in tops]
     flat: list[Building] = []
     parent: list[int] = []
     root: list[int] = []

@@ -31,6 +31,7 @@ this importer never commits such a row, older versions did), as `citytherm db re
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import uuid
@@ -66,8 +67,9 @@ from db.ops import (
 )
 from db.session import as_engine
 from db.settings import Settings
+from db.srid import database_srid, model_epsg, to_database
 from workers.pipeline.geometry.citymodel import Appearance, ModelHeader
-from workers.pipeline.geometry.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
+from workers.pipeline.geometry.crs import UnknownCRSError, vertical_epsg
 
 __all__ = [
     "ImportInterrupted",
@@ -75,7 +77,6 @@ __all__ = [
     "ImportProgress",
     "ImportSummary",
     "import_citygml",
-    "model_srid",
 ]
 
 log = logging.getLogger(__name__)
@@ -97,6 +98,8 @@ class ImportOptions:
         parallel_read: parse the file in a separate reader process while this one writes (None:
             for files larger than `parallel_above_bytes`).
         import_images: store the image files of the file's textures that lie in its folder.
+        crs: the CRS of the file's coordinates (e.g. `EPSG:25832`) when the file names none, or
+            to override what it names. The geometries are stored in the database SRID.
     """
 
     batch_size: int = 250
@@ -105,6 +108,7 @@ class ImportOptions:
     parallel_read: bool | None = None
     parallel_above_bytes: int = 16 * 1024**2
     import_images: bool = True
+    crs: str | None = None
 
 
 @dataclass(frozen=True)
@@ -142,16 +146,15 @@ class ImportProgress:
     seconds: float
 
 
-def model_srid(srs_name: str | None) -> int:
-    """SRID for a model's geometries: EPSG code of its horizontal CRS, 0 when it has none or the
-    name is unknown."""
-    if not srs_name:
-        return 0
-    try:
-        return horizontal_epsg(srs_name) or 0
-    except UnknownCRSError:
-        log.warning("CRS %r not resolvable: geometries get SRID 0", srs_name)
-        return 0
+def model_crs(path: Path, header: ModelHeader, crs: str | None, huge_tree: bool = False) -> tuple[str, int]:
+    """The model's CRS name and its horizontal EPSG code: `crs` when given, else the file's
+    `srsName` (the model's envelope, else its first building's). Raises `InputDataError` naming
+    the file when there is none or it is unknown: a model is never stored without a CRS."""
+    srs = crs or header.srs_name
+    if not srs:
+        first = next(iter(citygml_reader.iter_buildings(path, huge_tree=huge_tree)), None)
+        srs = first.srs_name if first is not None else None
+    return srs or "", model_epsg(srs, what=f"{path}")
 
 
 def _vertical(srs_name: str | None) -> int | None:
@@ -286,8 +289,9 @@ def _finish_model(
     box = conn.execute(
         text(
             "SELECT ST_XMin(e), ST_YMin(e), ST_ZMin(e), ST_XMax(e), ST_YMax(e), ST_ZMax(e), "
-            "(SELECT srid FROM city_model WHERE id = :m) FROM (SELECT ST_3DExtent(envelope) AS e "
-            "FROM building WHERE city_model_id = :m AND NOT is_part) x"
+            "Find_SRID(current_schema()::text, 'building', 'envelope') "
+            "FROM (SELECT ST_3DExtent(envelope) AS e FROM building "
+            "WHERE city_model_id = :m AND NOT is_part) x"
         ),
         {"m": model_id},
     ).one()
@@ -348,7 +352,11 @@ def _import(
 ) -> ImportSummary:
     t0 = time.perf_counter()
     header = citygml_reader.read_header(path, huge_tree=opts.huge_tree)
-    srid = model_srid(header.srs_name)
+    srs_name, srid = model_crs(path, header, opts.crs, opts.huge_tree)
+    header = dataclasses.replace(header, srs_name=srs_name)
+    with engine.connect() as conn:
+        db_srid = database_srid(conn)
+    to_db = to_database(srs_name, db_srid)
     image_dir = path.resolve().parent if opts.import_images else None
     parallel = (
         opts.parallel_read
@@ -371,7 +379,7 @@ def _import(
     stream = BatchStream(
         path,
         batch_size=opts.batch_size,
-        transform=partial(batch_lines, srid=srid, checks=opts.checks),
+        transform=partial(batch_lines, srid=db_srid, checks=opts.checks, to_db=to_db),
         huge_tree=opts.huge_tree,
         parallel=parallel,
     )

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import uuid
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -21,20 +22,32 @@ from sqlalchemy.orm import Session
 
 from db.errors import CityDBError, NotFoundError
 from db.geomcodec import encode_linestring_z, encode_point_z
+from db.srid import database_srid, to_database
 from workers.pipeline.geometry.manifest import SequenceManifest
 from workers.pipeline.geometry.pose import Pose
 
 __all__ = [
     "FINAL_STATES",
+    "PRE_UNIT_STAGES",
+    "JobRecord",
     "StateError",
     "add_units",
+    "claim_unit",
     "create_job",
     "dismiss_job",
     "finish_job_if_done",
     "job_counts",
+    "jobs_to_sweep",
+    "lock_job",
     "register_sequence",
+    "requeue_units",
+    "set_job_results",
     "set_job_status",
+    "set_stage",
     "set_unit_status",
+    "set_unit_tasks",
+    "unit_status",
+    "unit_task_ids",
 ]
 
 FINAL_STATES = ("successful", "failed", "dismissed")
@@ -228,10 +241,14 @@ def register_sequence(
     priors: Sequence[Pose] | None = None,
 ) -> int:
     """Insert a sequence (its `sequence.json` as jsonb, where it is stored), one row per frame
-    (with the prior pose when `priors[i]` is given) and the trajectory of the frame positions
-    (`LINESTRING Z` in `srid`, the EPSG code of the manifest CRS). Returns the sequence id."""
+    (with the prior pose when `priors[i]` is given) and the trajectory of the frame positions.
+    `srid` is the EPSG code of the manifest CRS (kept in `sequence.srid`); the trajectory
+    (`LINESTRING Z`) and the prior centres (`POINT Z`) are stored in the database SRID, heights
+    kept. Returns the sequence id."""
+    db_srid = database_srid(session.connection())
+    to_db = to_database(manifest.crs, db_srid)
     pos = np.array([f.position for f in manifest.frames], dtype=np.float64).reshape(-1, 3)
-    traj = encode_linestring_z(pos, srid) if len(pos) >= 2 else None
+    traj = encode_linestring_z(to_db.points(pos), db_srid) if len(pos) >= 2 else None
     sid = session.execute(
         text(
             "INSERT INTO sequence (name, manifest, storage_location, frame_count, srs_name, srid, "
@@ -257,7 +274,7 @@ def register_sequence(
                 "i": f.index,
                 "f": f.file,
                 "t": f.time,
-                "c": encode_point_z(prior.center, srid) if prior is not None else None,
+                "c": None if prior is None else encode_point_z(to_db.points(prior.center[None])[0], db_srid),
                 "r": prior.R_world_from_cam.ravel().tolist() if prior is not None else None,
                 "rec": json.dumps({"position": f.position.tolist(), "attitude_deg": f.attitude_deg.tolist()}),
             }
@@ -271,3 +288,208 @@ def register_sequence(
             rows,
         )
     return int(sid)
+
+
+# -- the service's task bookkeeping (workers/service_job.py) ---------------------------------------
+#: a job's stages before its units exist (`job.stage`)
+PRE_UNIT_STAGES = ("accepted", "ingest", "calibrate", "orient", "plan")
+_SKIP = "FOR UPDATE SKIP LOCKED"
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """The columns of a `job` row the workers use."""
+
+    id: uuid.UUID
+    status: str
+    stage: str
+    city_model_id: int
+    sequence_id: int | None
+    theme: str
+    options: dict[str, Any]
+    results_location: str | None
+
+
+def lock_job(session: Session, *, job_id: uuid.UUID | str, share: bool = False) -> JobRecord:
+    """The job row, locked `FOR UPDATE` (or `FOR SHARE`: a dismissal, which updates the row,
+    then waits until this transaction ends). Raises `NotFoundError`."""
+    row = session.execute(
+        text(
+            "SELECT id, status, stage, city_model_id, sequence_id, theme, options, results_location "
+            f"FROM job WHERE id = :j FOR {'SHARE' if share else 'UPDATE'}"
+        ),
+        {"j": _uuid(job_id)},
+    ).first()
+    if row is None:
+        raise NotFoundError(f"job {job_id} not found")
+    return JobRecord(row[0], row[1], row[2], int(row[3]), row[4], row[5], dict(row[6] or {}), row[7])
+
+
+def set_stage(session: Session, *, job_id: uuid.UUID | str, stage: str) -> None:
+    """Set the job's current stage (`accepted`, `ingest`, ..., `units`, `finish`)."""
+    session.execute(
+        text("UPDATE job SET stage = :s, updated_at = now() WHERE id = :j"), {"j": _uuid(job_id), "s": stage}
+    )
+
+
+def set_job_results(
+    session: Session, *, job_id: uuid.UUID | str, location: str, timings_s: Mapping[str, float],
+    mounting: Mapping[str, Any] | None,
+) -> None:
+    """Record the job's results folder, its stage timings and the estimated mounting."""
+    session.execute(
+        text(
+            "UPDATE job SET results_location = :loc, timings_s = CAST(:t AS jsonb), "
+            "mounting = CAST(:mnt AS jsonb), updated_at = now() WHERE id = :j"
+        ),
+        {
+            "j": _uuid(job_id),
+            "loc": location,
+            "t": json.dumps({k: float(v) for k, v in timings_s.items()}),
+            "mnt": json.dumps(dict(mounting)) if mounting is not None else None,
+        },
+    )
+
+
+def set_unit_tasks(session: Session, *, job_id: uuid.UUID | str, task_ids: Mapping[str, str]) -> None:
+    """Record the Celery task id each unit is queued with (top-level building gml id -> task id);
+    `heartbeat_at` becomes now: the time it was queued, until it starts running."""
+    if not task_ids:
+        return
+    session.execute(
+        text(
+            "UPDATE job_unit u SET task_id = :t, heartbeat_at = now() FROM building b "
+            "WHERE u.building_id = b.id AND u.job_id = :j AND b.gml_id = :g AND NOT b.is_part"
+        ),
+        [{"j": _uuid(job_id), "g": g, "t": t} for g, t in task_ids.items()],
+    )
+
+
+def claim_unit(
+    session: Session,
+    *,
+    job_id: uuid.UUID | str,
+    building_gml_id: str,
+    task_id: str,
+    stale_after_s: float,
+    max_attempts: int,
+) -> str:
+    """Decide whether the delivery `task_id` of a unit runs it, with the job row locked
+    `FOR SHARE` and the unit `FOR UPDATE`. Returns:
+
+    - `run`: the unit is now `running` under `task_id` (attempt counted, heartbeat now);
+    - `final`: the unit is final already; `dismissed`: the job is final (dismissed or failed);
+    - `busy`: another delivery runs it (status `running`, another task id, heartbeat younger than
+      `stale_after_s` seconds);
+    - `exhausted`: it started `max_attempts` times already (its worker died or it ran past the
+      time limit each time): it is now `failed`.
+    Raises `NotFoundError` for an unknown job or unit."""
+    job = lock_job(session, job_id=job_id, share=True)
+    if job.status in FINAL_STATES:
+        return "dismissed"
+    row = session.execute(
+        text(
+            "SELECT u.id, u.status, u.task_id, u.attempts, "
+            "COALESCE(u.heartbeat_at > now() - make_interval(secs => :stale), false) "
+            "FROM job_unit u JOIN building b ON b.id = u.building_id "
+            "WHERE u.job_id = :j AND b.gml_id = :g AND NOT b.is_part FOR UPDATE OF u"
+        ),
+        {"j": job.id, "g": building_gml_id, "stale": float(stale_after_s)},
+    ).first()
+    if row is None:
+        raise NotFoundError(f"job {job.id} has no unit for building {building_gml_id!r}")
+    uid, status, current, attempts, fresh = row
+    if status in FINAL_STATES:
+        return "final"
+    if status == "running" and current != task_id and fresh:
+        return "busy"
+    if attempts >= max_attempts:
+        sql = "UPDATE job_unit SET status = 'failed', finished_at = now(), error = :e WHERE id = :u"
+        why = f"given up after {attempts} attempts: its worker died or it ran out of time"
+        session.execute(text(sql), {"u": uid, "e": why})
+        return "exhausted"
+    sql = "UPDATE job_unit SET status = 'running', attempts = attempts + 1, started_at = now(), "
+    sql += "heartbeat_at = now(), task_id = :t, error = NULL WHERE id = :u"
+    session.execute(text(sql), {"u": uid, "t": task_id})
+    return "run"
+
+
+def unit_status(session: Session, *, job_id: uuid.UUID | str, building_gml_id: str) -> str | None:
+    """A unit's status, locked `FOR UPDATE` (None when the job has no such unit)."""
+    return session.execute(
+        text(
+            "SELECT u.status FROM job_unit u JOIN building b ON b.id = u.building_id "
+            "WHERE u.job_id = :j AND b.gml_id = :g AND NOT b.is_part FOR UPDATE OF u"
+        ),
+        {"j": _uuid(job_id), "g": building_gml_id},
+    ).scalar()
+
+
+def requeue_units(
+    session: Session, *, stale_after_s: float, queued_after_s: float, limit: int = 1000
+) -> list[tuple[uuid.UUID, str, str]]:
+    """Units to queue again, of jobs `running` in stage `units`: `running` with a heartbeat older
+    than `stale_after_s` seconds (their worker died), and `accepted` ones queued (or never
+    queued) longer than `queued_after_s` ago (their message was lost). Rows other sweepers hold
+    are skipped (`SKIP LOCKED`). Each gets a new task id, status `accepted` and a fresh
+    `heartbeat_at`. Returns (job id, building gml id, new task id); commit before sending."""
+    rows = session.execute(
+        text(
+            "SELECT u.id, u.job_id, b.gml_id FROM job_unit u JOIN job j ON j.id = u.job_id "
+            "JOIN building b ON b.id = u.building_id WHERE j.status = 'running' AND j.stage = 'units' "
+            "AND ((u.status = 'running' AND COALESCE(u.heartbeat_at, u.started_at, j.updated_at) "
+            "< now() - make_interval(secs => :stale)) OR (u.status = 'accepted' AND "
+            "COALESCE(u.heartbeat_at, j.updated_at) < now() - make_interval(secs => :queued))) "
+            "ORDER BY u.id LIMIT :n FOR UPDATE OF u SKIP LOCKED"
+        ),
+        {"stale": float(stale_after_s), "queued": float(queued_after_s), "n": int(limit)},
+    ).all()
+    out = [(r[1], str(r[2]), str(uuid.uuid4())) for r in rows]
+    if rows:
+        session.execute(
+            text(
+                "UPDATE job_unit SET status = 'accepted', task_id = :t, heartbeat_at = now() WHERE id = :u"
+            ),
+            [{"u": r[0], "t": t} for r, (_, _, t) in zip(rows, out, strict=True)],
+        )
+    return out
+
+
+def jobs_to_sweep(session: Session, *, which: str, older_than_s: float, limit: int = 100) -> list[uuid.UUID]:
+    """Jobs the sweeper acts on, locked (`SKIP LOCKED`), `updated_at` set to now (so one is taken
+    again only after another `older_than_s` seconds):
+
+    - `done`: `running` in stage `units` with every unit final (`finish_job_if_done` decides);
+    - `results`: final after their units (stage `units` or `finish`) without a results folder,
+      last touched more than `older_than_s` seconds ago (their finish task was lost);
+    - `prepare`: `accepted` or `running` before their units (`PRE_UNIT_STAGES`), last touched
+      more than `older_than_s` seconds ago (their prepare task was lost)."""
+    cond = {
+        "done": "j.status = 'running' AND j.stage = 'units' AND NOT EXISTS (SELECT 1 FROM job_unit u "
+        "WHERE u.job_id = j.id AND u.status IN ('accepted', 'running'))",
+        "results": "j.status IN ('successful', 'failed') AND j.stage IN ('units', 'finish') "
+        "AND j.results_location IS NULL AND j.updated_at < now() - make_interval(secs => :old)",
+        "prepare": "j.status IN ('accepted', 'running') AND j.stage = ANY(:pre) "
+        "AND j.updated_at < now() - make_interval(secs => :old)",
+    }[which]
+    ids = [
+        r[0]
+        for r in session.execute(
+            text(f"SELECT j.id FROM job j WHERE {cond} ORDER BY j.updated_at LIMIT :n {_SKIP}"),
+            {"old": float(older_than_s), "pre": list(PRE_UNIT_STAGES), "n": int(limit)},
+        ).all()
+    ]
+    if ids and which != "done":
+        session.execute(text("UPDATE job SET updated_at = now() WHERE id = ANY(:ids)"), {"ids": ids})
+    return ids
+
+
+def unit_task_ids(session: Session, *, job_id: uuid.UUID | str) -> list[tuple[str, str]]:
+    """(task id, unit status) of the job's units that were queued (for revoking them)."""
+    return [
+        (str(t), str(s))
+        for t, s in session.execute(
+            text("SELECT task_id, status FROM job_unit WHERE job_id = :j AND task_id IS NOT NULL"),
+            {"j": _uuid(job_id)},
+        ).all()
+    ]

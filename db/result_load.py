@@ -20,6 +20,7 @@ from sqlalchemy.orm import Session
 from db.appearance_rows import load_texture_params, surface_data_from_rows
 from db.errors import NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
+from db.srid import database_srid, from_database
 from workers.pipeline.geometry.citymodel import Appearance
 from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.geometry.pose import Pose
@@ -109,6 +110,8 @@ def load_building_result(
             {"j": jid, "b": bid},
         ).mappings()
     )
+    srs = conn.execute(text("SELECT srs_name FROM city_model WHERE id = :m"), {"m": model_id}).scalar_one()
+    back = from_database(srs, database_srid(conn))  # outlines are stored in the database SRID
     anomalies = []
     for r in conn.execute(
         text(
@@ -119,7 +122,7 @@ def load_building_result(
         {"a": aid},
     ).mappings():
         wkb = r["outline_wkb"]
-        outline = polygon_rings_from_wkb(wkb)[0] if wkb is not None else np.zeros((0, 3))
+        outline = back.points(polygon_rings_from_wkb(wkb)[0]) if wkb is not None else np.zeros((0, 3))
         anomalies.append(
             Anomaly(
                 building_id=building_gml_id,

@@ -32,9 +32,11 @@ from db.errors import InputDataError, NotFoundError
 from db.geomcodec import encode_point_z, encode_polygon_z
 from db.jobs import create_job
 from db.ops import copy_rows, reserve_ids
+from db.srid import database_srid, to_database
 from workers.pipeline.geometry.citymodel import Appearance, ParameterizedTexture
 from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.transform import CrsTransform
 from workers.pipeline.results import BuildingResult, TextureTile
 
 __all__ = ["StoredResult", "create_job", "encode_tile_png", "store_building_result", "to_kelvin"]
@@ -187,6 +189,7 @@ def _write(
     result: BuildingResult,
     theme: str,
     srid: int,
+    to_db: CrsTransform,
     priors: Mapping[int, Pose] | None,
 ) -> StoredResult:
     bid = _building_row(conn, model_id, result.building_id)
@@ -285,7 +288,7 @@ def _write(
                 prior.R_world_from_cam.ravel().tolist() if prior is not None else None,
                 fp.pose.center.tolist(),
                 fp.pose.R_world_from_cam.ravel().tolist(),
-                encode_point_z(fp.pose.center, srid),
+                encode_point_z(to_db.points(fp.pose.center[None])[0], srid),
                 _f(fp.rms_px),
                 int(fp.matches),
             )
@@ -296,9 +299,10 @@ def _write(
             text(
                 "UPDATE frame_pose fp SET frame_id = f.id, "
                 "prior_center = COALESCE(fp.prior_center, CASE WHEN f.prior_center IS NULL THEN NULL "
-                "ELSE ARRAY[ST_X(f.prior_center), ST_Y(f.prior_center), ST_Z(f.prior_center)] END), "
-                "prior_rotation = COALESCE(fp.prior_rotation, f.prior_rotation) "
+                "ELSE (SELECT ARRAY[ST_X(c), ST_Y(c), ST_Z(c)] FROM ST_Transform(f.prior_center, m.srid) c) "
+                "END), prior_rotation = COALESCE(fp.prior_rotation, f.prior_rotation) "
                 "FROM job j JOIN frame f ON f.sequence_id = j.sequence_id "
+                "JOIN city_model m ON m.id = j.city_model_id "
                 "WHERE j.id = :j AND fp.job_id = :j AND fp.building_id = :b AND f.index = fp.frame_index"
             ),
             p,
@@ -315,7 +319,7 @@ def _write(
                 bid,
                 surface_row.get(a.polygon_id),
                 a.kind,
-                encode_polygon_z([ring], srid) if len(ring) >= 4 else None,
+                encode_polygon_z([to_db.points(ring)], srid) if len(ring) >= 4 else None,
                 np.asarray(a.centre, dtype=np.float64).tolist(),
                 float(a.area_m2),
                 float(a.peak_delta_k),
@@ -357,15 +361,23 @@ def store_building_result(
         conn = session.connection()
         job = conn.execute(
             text(
-                "SELECT j.theme, m.srid FROM job j JOIN city_model m ON m.id = j.city_model_id "
+                "SELECT j.theme, m.srs_name FROM job j JOIN city_model m ON m.id = j.city_model_id "
                 "WHERE j.id = :j AND j.city_model_id = :m"
             ),
             {"j": jid, "m": model_id},
         ).first()
         if job is None:
             raise NotFoundError(f"job {jid} of city model {model_id} not found")
+        db_srid = database_srid(conn)
         stored = _write(
-            conn, job_id=jid, model_id=model_id, result=result, theme=job[0], srid=int(job[1]), priors=priors
+            conn,
+            job_id=jid,
+            model_id=model_id,
+            result=result,
+            theme=job[0],
+            srid=db_srid,
+            to_db=to_database(job[1], db_srid),
+            priors=priors,
         )
     if commit:
         session.commit()

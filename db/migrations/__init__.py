@@ -29,9 +29,14 @@ def alembic_config(database_url: str) -> Config:
     return cfg
 
 
-def upgrade(database_url: str, revision: str = "head") -> None:
-    """Upgrade the database to `revision` (default: the newest)."""
-    command.upgrade(alembic_config(database_url), revision)
+def upgrade(database_url: str, revision: str = "head", *, srid: int | None = None) -> None:
+    """Upgrade the database to `revision` (default: the newest). `srid` is the EPSG code the
+    geometry columns are typed with when revision 0007 runs (default: `CITYTHERM_DATABASE_SRID`,
+    else 25832); a database past 0007 keeps its SRID (see `database_srid`)."""
+    cfg = alembic_config(database_url)
+    if srid is not None:
+        cfg.attributes["database_srid"] = int(srid)
+    command.upgrade(cfg, revision)
 
 
 def downgrade(database_url: str, revision: str = "base") -> None:

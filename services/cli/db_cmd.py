@@ -27,12 +27,21 @@ DbUrl = typer.Option(None, "--database-url", help="SQLAlchemy/libpq URL (default
 
 
 @db_app.command("upgrade")
-def upgrade_cmd(revision: str = typer.Argument("head"), database_url: str | None = DbUrl) -> None:
+def upgrade_cmd(
+    revision: str = typer.Argument("head"),
+    srid: int | None = typer.Option(
+        None,
+        "--srid",
+        help="EPSG code of the geometry columns when the schema is created (default: "
+        "CITYTHERM_DATABASE_SRID, 25832); a typed database keeps its SRID",
+    ),
+    database_url: str | None = DbUrl,
+) -> None:
     """Upgrade the schema to REVISION (default: the newest)."""
     from db.migrations import current_revision, upgrade
 
     url = _url(database_url)
-    upgrade(url, revision)
+    upgrade(url, revision, srid=srid if srid is not None else get_settings().database_srid)
     console.print(f"database at revision [bold]{current_revision(url)}[/bold]")
 
 
@@ -103,10 +112,14 @@ def import_cmd(
     replace: bool = typer.Option(False, "--replace", help="replace an existing model of that name"),
     checks: str = typer.Option("fast", "--checks", help="geometry checks: fast, full or none"),
     progress: bool = typer.Option(False, "--progress", help="print progress lines on stderr"),
+    crs: str | None = typer.Option(
+        None, "--crs", help="CRS of the file's coordinates (e.g. EPSG:25832) when it names none, or instead"
+    ),
     database_url: str | None = DbUrl,
 ) -> None:
     """Import a CityGML file into the city model database (streamed; all or nothing: an error,
-    Ctrl-C, SIGTERM or a killed process leaves nothing behind)."""
+    Ctrl-C, SIGTERM or a killed process leaves nothing behind). Geometries are stored in the
+    database SRID (transformed when the model's CRS is another; heights kept)."""
     from db.errors import CityDBError
     from db.importer import ImportInterrupted, ImportOptions, ImportProgress, import_citygml
 
@@ -124,7 +137,7 @@ def import_cmd(
             city_gml,
             name=name,
             replace=replace,
-            options=ImportOptions(checks=checks),
+            options=ImportOptions(checks=checks, crs=crs),
             progress=show if progress else None,
         )
     except ImportInterrupted as exc:
@@ -134,7 +147,7 @@ def import_cmd(
         console.print(f"[red]import failed:[/red] {exc}")
         raise typer.Exit(1) from exc
     console.print(
-        f"model [bold]{s.name}[/bold] (id {s.model_id}, SRID {s.srid}{', replaced' if s.replaced else ''}): "
+        f"model [bold]{s.name}[/bold] (id {s.model_id}, EPSG:{s.srid}{', replaced' if s.replaced else ''}): "
         f"{s.buildings} buildings, {s.parts} parts, {s.surfaces} surfaces, {s.appearances} appearances "
         f"in {s.seconds:.1f} s{_rates(s.buildings, s.parts, s.seconds)}"
     )

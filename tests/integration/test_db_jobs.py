@@ -22,6 +22,7 @@ from db.jobs import (
     set_unit_status,
 )
 from db.store import store_building_result
+from tests.integration.conftest import TEST_SRID
 from tests.integration.test_db_store_export import make_result
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import Building
@@ -35,12 +36,12 @@ pytestmark = pytest.mark.integration
 def _manifest(n: int) -> SequenceManifest:
     frames = tuple(
         FrameRecord(
-            i, f"frames/{i:06d}.png", 0.1 * i, np.array([691000.0 + i, 5334000.0, 520.0]), np.zeros(3)
+            i, f"frames/{i:06d}.png", 0.1 * i, np.array([392000.0 + i, 5820000.0, 40.0]), np.zeros(3)
         )
         for i in range(n)
     )
     cam = Camera(width=640, height=512, fx=800.0, fy=800.0, cx=319.5, cy=255.5)
-    return SequenceManifest("car", "EPSG:25832", cam, Radiometry(), Mounting(np.eye(3)), frames)
+    return SequenceManifest("car", "EPSG:25833", cam, Radiometry(), Mounting(np.eye(3)), frames)
 
 
 def test_job_lifecycle_and_sequence(db_engine) -> None:
@@ -48,7 +49,8 @@ def test_job_lifecycle_and_sequence(db_engine) -> None:
 
     _, buildings = read_model(BUNDLED_MODEL)
     b0: Building = buildings[0]
-    priors = [Pose(np.eye(3), np.array([691000.0 + i, 5334000.0, 521.5])) for i in range(3)]
+    # the sequence in the model's CRS (ETRS89 / UTM 33N, as the Berlin model)
+    priors = [Pose(np.eye(3), np.array([392000.0 + i, 5820000.0, 41.5])) for i in range(3)]
     with Session(db_engine) as session:
         seq = register_sequence(
             session,
@@ -56,7 +58,7 @@ def test_job_lifecycle_and_sequence(db_engine) -> None:
             manifest=_manifest(3),
             manifest_json={"format": "citytherm-sequence/1"},
             storage_location="/data/drive-1",
-            srid=25832,
+            srid=25833,
             priors=priors,
         )
         job = create_job(session, model_id=s.model_id, theme="tir", sequence_id=seq)
@@ -98,7 +100,7 @@ def test_job_lifecycle_and_sequence(db_engine) -> None:
             ),
             {"s": seq},
         ).one()
-        assert tuple(seq_row) == (3, 3, 25832)
+        assert tuple(seq_row) == (3, 3, TEST_SRID)
         poses = c.execute(
             text(
                 "SELECT frame_index, frame_id IS NOT NULL, prior_center, refined_center FROM frame_pose "

@@ -102,3 +102,53 @@ def test_upgrade_then_downgrade_empty_database(empty_db: str) -> None:
     assert _relations(empty_db) == (set(), set())
     upgrade(empty_db)  # and up again from scratch
     assert _relations(empty_db) == (TABLES, VIEWS)
+
+
+def _model_with_box(conn: psycopg.Connection, name: str, srid: int, x: float, y: float) -> None:
+    """A city model row and one building whose envelope is a box at (x, y) in `srid`."""
+    mid = conn.execute(
+        "INSERT INTO city_model (name, srs_name, srid, building_count, part_count, surface_count, state) "
+        "VALUES (%s, %s, %s, 1, 0, 0, 'complete') RETURNING id",
+        (name, f"EPSG:{srid}", srid),
+    ).fetchone()[0]
+    conn.execute(
+        "INSERT INTO building (id, city_model_id, gml_id, is_part, ordinal, generated_id, attributes, "
+        "envelope) VALUES (nextval('building_id_seq'), %s, 'B', false, 0, false, '{}', "
+        "ST_SetSRID(ST_MakePolygon(ST_MakeLine(ARRAY[ST_MakePoint(%s, %s, 0), ST_MakePoint(%s + 1, %s, 0), "
+        "ST_MakePoint(%s + 1, %s + 1, 10), ST_MakePoint(%s, %s, 0)])), %s))",
+        (mid, x, y, x, y, x, y, x, y, srid),
+    )
+
+
+def test_typing_a_database_of_mixed_srids_transforms_the_other_rows(empty_db: str) -> None:
+    """Revision 0007 on a database where models of two CRSs share untyped columns: the rows of the
+    other CRS are transformed (PostGIS ST_Transform, heights kept), every column is typed; a model
+    without a CRS (SRID 0) stops the migration and names it."""
+    upgrade(empty_db, "0006")
+    with psycopg.connect(empty_db) as conn:
+        _model_with_box(conn, "berlin", 25833, 392000.0, 5820000.0)
+        _model_with_box(conn, "nrw", 25832, 360000.0, 5660000.0)
+        _model_with_box(conn, "nowhere", 0, 10.0, 20.0)
+    with pytest.raises(ValueError, match="nowhere"):
+        upgrade(empty_db, srid=25833)
+    assert current_revision(empty_db) == "0006"
+    with psycopg.connect(empty_db) as conn:
+        conn.execute("DELETE FROM city_model WHERE name = 'nowhere'")
+    upgrade(empty_db, srid=25833)
+    with psycopg.connect(empty_db) as conn:
+        srids = {r[0] for r in conn.execute("SELECT DISTINCT srid FROM geometry_columns")}
+        rows = dict(
+            conn.execute(
+                "SELECT m.name, ARRAY[ST_X(p), ST_Y(p), ST_ZMax(b.envelope), ST_SRID(b.envelope)] "
+                "FROM building b JOIN city_model m ON m.id = b.city_model_id, "
+                "ST_PointN(ST_ExteriorRing(b.envelope), 1) p"
+            ).fetchall()
+        )
+    assert srids == {25833}
+    assert rows["berlin"] == [392000.0, 5820000.0, 10.0, 25833.0]  # already in the database SRID
+    import pyproj
+
+    x, y = pyproj.Transformer.from_crs(25832, 25833, always_xy=True).transform(360000.0, 5660000.0)
+    nx, ny, nz, ns = rows["nrw"]
+    assert (ns, nz) == (25833.0, 10.0) and abs(nx - x) < 1e-3 and abs(ny - y) < 1e-3
+    assert nx < 0  # the Ruhr lies west of UTM zone 33's false origin

@@ -25,6 +25,7 @@ from db.importer import import_citygml
 from db.results_folder.write import write_textured_gml, write_tile
 from db.store import create_job, store_building_result
 from tests.conftest import DATA
+from tests.integration.conftest import TEST_SRID
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture, TextureTarget
 from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.geometry.pose import Pose
@@ -326,10 +327,10 @@ def test_two_themes_stay_apart(model, tmp_path) -> None:
     for theme, pid, mean_k, srid, share in rows:
         expected = stats1[pid].temperature["mean"] + (273.15 if theme == "tir-2025-winter" else 0.0)
         assert mean_k == pytest.approx(expected, abs=1e-9)
-        assert srid == 25832 and share == pytest.approx(stats1[pid].observed_share)
+        assert srid == TEST_SRID and share == pytest.approx(stats1[pid].observed_share)
     assert [(t, n, o, s) for t, n, o, s, _ in bt] == [
-        ("tir-2024-winter", len(r1.surfaces), TEXTURED, 25832),
-        ("tir-2025-winter", len(r1.surfaces), TEXTURED, 25832),
+        ("tir-2024-winter", len(r1.surfaces), TEXTURED, TEST_SRID),
+        ("tir-2025-winter", len(r1.surfaces), TEXTURED, TEST_SRID),
     ]
     # export per theme: only that theme's appearance and texture coordinates
     for r in (r1, r2):

@@ -31,12 +31,14 @@ from db.results_import import import_results, results_job_id
 from db.store import store_building_result
 from services.cli import app
 from tests.conftest import DATA
+from tests.integration.conftest import TEST_SRID
 from tests.unit.texture_package import write_scene
 from tests.unit.texture_scene import box_building, look_at
 from workers.job import RunOptions, ingest
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import ParameterizedTexture
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.transform import CrsTransform
 from workers.pipeline.results import BuildingResult
 from workers.run import run_job
 
@@ -367,7 +369,12 @@ def test_anomalies_of_the_folder_are_stored(cli_run, db_engine, tmp_path):
     assert s.anomalies == 1
     (row,) = raw_rows(db_engine, s.job_id, "thermal_anomaly")
     assert row[:3] == ("B1", "B1_w0", "leak") and row[5:] == (1.25, 3.5, 2.0)
-    assert row[3] == "SRID=25832;POLYGON((" + ",".join(" ".join(f"{v:g}" for v in xyz) for xyz in ring) + "))"
+    # the outline in the database SRID: transformed back, the model's coordinates (EPSG:25832)
+    ewkt = row[3]
+    assert ewkt.startswith(f"SRID={TEST_SRID};POLYGON((")
+    stored = np.array([[float(v) for v in xyz.split()] for xyz in ewkt.split("((")[1].rstrip(")").split(",")])
+    back = CrsTransform(f"EPSG:{TEST_SRID}", "EPSG:25832").points(stored)
+    np.testing.assert_allclose(back, np.array(ring), atol=1e-6)
     np.testing.assert_array_equal(row[4], np.mean(ring[:3], axis=0))
 
 
