@@ -27,7 +27,7 @@ refinement live in `RunOptions.unit` only.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -146,7 +146,7 @@ class Ingested:
     buildings within reach of the cameras.
 
     Attributes:
-        city_gml: the city model file.
+        city_gml: the city model: its file, or the name of a model from the database.
         package_dir: the package folder (`sequence.json` in it).
         header: the model's CRS and name.
         manifest: the sequence manifest (positions in the manifest's CRS).
@@ -157,7 +157,7 @@ class Ingested:
         radiometry: the output tiles' radiometry (`results.output_radiometry`).
     """
 
-    city_gml: Path
+    city_gml: Path | str
     package_dir: Path
     header: ModelHeader
     manifest: SequenceManifest
@@ -228,20 +228,52 @@ def no_progress(stage: str, done: int, total: int) -> None:
     """The default progress callback: nothing."""
 
 
-def ingest(
-    city_gml: str | Path, package_dir: str | Path, options: RunOptions, progress: Progress = no_progress
-) -> Ingested:
-    """The ingest stage (see the module docstring). Raises `RunError` naming the file or option,
-    `PackageError` / `CityGMLError` for bad input."""
+#: a model's top-level buildings for ingest: `(prior poses, reach in metres) -> buildings` in
+#: model order; it may leave out buildings farther than the reach from every camera (a spatial
+#: query), never one within it (`plan.near_buildings` keeps those).
+BuildingSource = Callable[[Sequence[Pose], float], Iterable[Building]]
+
+
+def _check_options(options: RunOptions) -> None:
     if options.workers < 1:
         raise RunError(f"workers must be >= 1, got {options.workers}")
     TexelOptions(resolution_px_per_m=options.resolution_px_per_m)  # validates the resolution
+
+
+def ingest(
+    city_gml: str | Path, package_dir: str | Path, options: RunOptions, progress: Progress = no_progress
+) -> Ingested:
+    """The ingest stage (see the module docstring) on a CityGML file (`ingest_buildings` with the
+    file's buildings, streamed). Raises `RunError` naming the file or option, `PackageError` /
+    `CityGMLError` for bad input."""
+    _check_options(options)
     city_gml = Path(city_gml)
     progress("ingest", 0, 3)
     if not city_gml.is_file():
         raise RunError(f"{city_gml}: city model not found")
     header = read_header(city_gml)
     progress("ingest", 1, 3)
+    every = lambda priors, reach: iter_buildings(city_gml)  # noqa: E731 - the whole file, streamed
+    return ingest_buildings(header, every, package_dir, options, progress, city_model=city_gml)
+
+
+def ingest_buildings(
+    header: ModelHeader,
+    buildings: BuildingSource,
+    package_dir: str | Path,
+    options: RunOptions,
+    progress: Progress = no_progress,
+    *,
+    city_model: str | Path,
+    model_ids: Collection[str] | None = None,
+) -> Ingested:
+    """The ingest stage over a model given by its header and its buildings (a file's, or a
+    database model's: `db.model_load`): read the package, georeference the prior poses into
+    `header.srs_name`, keep the buildings within reach of the cameras. `city_model` names the
+    model in messages and `report.json`; `model_ids` are the ids of all the model's top-level
+    buildings when `buildings` leaves some out (requested ids are checked against them, their
+    number is `n_model_buildings`; None: the ids `buildings` gives). Raises as `ingest`."""
+    _check_options(options)
     given = Path(package_dir).resolve()
     with open_package(package_dir) as pkg:
         if pkg.root.resolve() not in (given, given.parent):
@@ -251,21 +283,22 @@ def ingest(
     priors = prior_poses(manifest, header.srs_name)
     progress("ingest", 2, 3)
     reach = min(options.plan.max_distance_m, options.unit.visibility.max_distance_m)
-    buildings, ids = near_buildings(iter_buildings(city_gml), priors, reach)
+    near, ids = near_buildings(buildings(priors, reach), priors, reach)
+    known: Collection[str] = ids if model_ids is None else model_ids
     if options.buildings is not None:
-        missing = [b for b in options.buildings if b not in ids]
+        missing = [b for b in options.buildings if b not in known]
         if missing:
-            raise RunError(f"buildings: not in {city_gml}: {', '.join(missing)}")
+            raise RunError(f"buildings: not in {city_model}: {', '.join(missing)}")
     progress("ingest", 3, 3)
     return Ingested(
-        city_gml=city_gml,
+        city_gml=city_model,
         package_dir=pkg.root,
         header=header,
         manifest=manifest,
         frames=frames,
         priors=tuple(priors),
-        buildings=tuple(buildings),
-        n_model_buildings=len(ids),
+        buildings=tuple(near),
+        n_model_buildings=len(known),
         radiometry=output_radiometry(manifest.radiometry, raw_dtype),
     )
 

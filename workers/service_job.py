@@ -1,0 +1,505 @@
+"""The work of the service's Celery tasks (`docs/service.md`); `workers/tasks.py` only wraps it.
+
+In: ids (job uuid as a string, building gml id, model import id), the settings of the process
+(`db.settings.Settings`, environment `CITYTHERM_*`), PostGIS and the storage directory. Out: rows
+(job and unit states, results through `db.store`), files under `jobs/<job id>/`, further tasks.
+
+- `prepare_job`: the stages of `citytherm run` before the units (`workers.job`: ingest over the
+  model's buildings from PostGIS, calibrate, orient, plan); one pickled `BuildingUnit` per
+  building (`jobs/<id>/units/<name>.pkl`), what `finish` needs (`prepared.pkl`) and the
+  manifest-only priors (`priors.pkl`, frame index -> `Pose`, for `frame_pose`); then one
+  `job_unit` per building with the id of the task queued for it, and the tasks.
+- `run_unit`: claims the unit (`db.jobs.claim_unit`), runs it (`workers.job.run_unit`), stores
+  the result in one transaction in which the job row is locked `FOR SHARE` and checked (a
+  dismissed job gets nothing more), then finishes the job when it was the last.
+- `finish_job`: the results folder (`workers.job.finish`, the writer of `citytherm run`) from the
+  stored results, and its zip; `sweep` and `import_model` as the design says.
+
+Prepare and finish run once per job at a time: each holds a session-level advisory lock on its
+own connection (released when its process dies), a second delivery finds it held and returns.
+Errors: bad input (`BAD_INPUT`) fails the job (or import) with its message, never retried;
+transient errors (`TRANSIENT`) propagate so that the task retries with backoff; anything else
+fails the job as `<type>: <message>`.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+import shutil
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import kombu.exceptions
+import redis.exceptions
+import sqlalchemy.exc
+from sqlalchemy import Engine, text
+from sqlalchemy.orm import Session
+
+from db import jobs
+from db.citygml import CityGMLError
+from db.errors import InputDataError, ModelExistsError
+from db.import_signals import ImportInterrupted
+from db.importer import import_citygml
+from db.model_load import ModelBuildingIds, iter_model_buildings, near_box
+from db.models import ModelImport
+from db.result_load import load_building_result
+from db.results_folder.write import write_tile
+from db.sequence_package import PackageError
+from db.service_records import get_model_import, imports_to_requeue, remove_abandoned_uploads
+from db.session import make_engine
+from db.settings import Settings
+from db.store import store_building_result
+from workers import service_storage as storage
+from workers.celery_app import app, stale_after_s
+from workers.job import (
+    Calibrated,
+    Ingested,
+    Oriented,
+    Planned,
+    RunError,
+    RunOptions,
+    UnitFailure,
+    calibrate,
+    finish,
+    ingest_buildings,
+    orient,
+    plan,
+    scene_caster,
+)
+from workers.job import run_unit as run_building
+from workers.pipeline.geometry.citymodel import ModelHeader
+from workers.pipeline.geometry.crs import UnknownCRSError, same_horizontal
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.transform import CrsTransformError
+from workers.pipeline.options import OptionsError
+from workers.pipeline.results import BuildingResult
+from workers.run import without_pixels
+
+log = logging.getLogger(__name__)
+
+#: errors worth a retry: the database, the broker or the storage was away for a moment
+TRANSIENT: tuple[type[BaseException], ...] = (
+    *(sqlalchemy.exc.OperationalError, sqlalchemy.exc.InterfaceError, sqlalchemy.exc.DisconnectionError),
+    *(sqlalchemy.exc.TimeoutError, redis.exceptions.ConnectionError, redis.exceptions.TimeoutError),
+    *(kombu.exceptions.OperationalError, OSError, ImportInterrupted),
+)
+#: bad input: the job (or import) fails with the message, no retry
+BAD_INPUT: tuple[type[BaseException], ...] = (
+    *(InputDataError, PackageError, CityGMLError, RunError, OptionsError, CrsTransformError, UnknownCRSError),
+)
+
+
+# -- the process's settings, database and storage ----------------------------------------------
+@functools.cache
+def settings() -> Settings:
+    """This process's settings (read once, from the environment)."""
+    return Settings()
+
+
+_ENGINE: dict[int, Engine] = {}
+_INHERITED: list[Engine] = []  # a parent's engines: kept, so their connections are never closed here
+
+
+def engine() -> Engine:
+    """This process's database engine (a forked worker process makes its own)."""
+    pid = os.getpid()
+    if pid not in _ENGINE:
+        _INHERITED.extend(_ENGINE.values())
+        _ENGINE.clear()
+        _ENGINE[pid] = make_engine(settings())
+    return _ENGINE[pid]
+
+
+def job_dir(job_id: uuid.UUID | str) -> Path:
+    """This job's folder in the storage directory."""
+    return storage.job_dir(settings().storage_dir, job_id)
+
+
+def send(name: str, *args: Any, task_id: str | None = None) -> str:
+    """Queue task `name` with `args` (ids only); returns its task id."""
+    return str(app.send_task(name, args=args, task_id=task_id or str(uuid.uuid4())).id)
+
+
+@contextmanager
+def job_lock(kind: str, job_id: uuid.UUID) -> Iterator[bool]:
+    """A session-level advisory lock `citytherm-<kind>:<job id>` on a connection of its own, held
+    while the block runs; yields False when another session holds it."""
+    with engine().connect() as conn:
+        key = {"k": f"citytherm-{kind}:{job_id}"}
+        got = bool(conn.execute(text("SELECT pg_try_advisory_lock(hashtext(:k))"), key).scalar())
+        conn.commit()
+        try:
+            yield got
+        finally:
+            if got:
+                try:
+                    conn.execute(text("SELECT pg_advisory_unlock(hashtext(:k))"), key)
+                    conn.commit()
+                except Exception:  # closing the connection releases it
+                    conn.invalidate()
+
+
+def fail_job(job_id: uuid.UUID, message: str) -> None:
+    """Mark a job that is not final yet `failed` with `message`."""
+    with Session(engine()) as s:
+        if jobs.lock_job(s, job_id=job_id).status not in jobs.FINAL_STATES:
+            message = message[:2000]
+            jobs.set_job_status(s, job_id=job_id, status="failed", message=message, error=message)
+        s.commit()
+
+
+def _message(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, BAD_INPUT) else f"{type(exc).__name__}: {exc}"
+
+
+# -- prepare -------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """What `prepare_job` keeps for `finish_job` (`prepared.pkl`): the stages' results as
+    `workers.job.finish` takes them (the units without occluders and sequence data, the
+    orientation as its report), the stage timings (s) and the package as reported."""
+
+    ingested: Ingested
+    calibrated: Calibrated
+    oriented: Oriented
+    planned: Planned
+    timings: dict[str, float]
+    package: str
+
+
+def _stage(job_id: uuid.UUID, stage: str) -> None:
+    with Session(engine()) as s:
+        jobs.set_stage(s, job_id=job_id, stage=stage)
+        s.commit()
+
+
+def _run_stages(job: jobs.JobRecord) -> tuple[Prepared, tuple[Any, ...], dict[int, Pose]]:
+    """ingest, calibrate, orient, plan for `job` (as `workers.run.run_job` runs them)."""
+    options = RunOptions.from_dict(job.options)
+    timings: dict[str, float] = {}
+    with engine().connect() as conn:
+        m = conn.execute(
+            text("SELECT id, name, srs_name, state, citygml_version, gml_name FROM city_model WHERE id = :m"),
+            {"m": job.city_model_id},
+        ).one()
+        seq_sql = "SELECT name, storage_location, srs_name FROM sequence WHERE id = :s"
+        seq = conn.execute(text(seq_sql), {"s": job.sequence_id}).first()
+        if m.state != "complete":
+            raise InputDataError(f"city model {m.name!r} is {m.state}, not complete")
+        if seq is None:
+            raise RunError(f"job {job.id} has no sequence")
+        if not (seq.srs_name and m.srs_name and same_horizontal(seq.srs_name, m.srs_name)):
+            raise RunError(
+                f"the sequence's CRS {seq.srs_name} differs from the city model's CRS {m.srs_name}: "
+                "a job runs in the model's CRS; record the sequence in it"
+            )
+        package = storage.storage_path(settings().storage_dir, seq.storage_location)
+        header = ModelHeader(version=m.citygml_version or "2.0", srs_name=m.srs_name, name=m.gml_name)
+
+        def near(priors: Any, reach: float) -> Iterator[Any]:
+            box = near_box(conn, m.id, [p.center for p in priors], reach) if len(priors) else None
+            return iter_model_buildings(conn, m.id, bbox=box) if box else iter([])
+
+        t0 = time.perf_counter()
+        ingested = ingest_buildings(
+            header, near, package, options, city_model=m.name, model_ids=ModelBuildingIds(conn, m.id)
+        )
+        timings["ingest"] = time.perf_counter() - t0
+    caster = None
+    if options.refine and options.calibrate:
+        _stage(job.id, "calibrate")
+        t0 = time.perf_counter()
+        caster = scene_caster(ingested)
+        calibrated = calibrate(ingested, options, caster)
+        timings["calibrate"] = time.perf_counter() - t0
+    else:
+        calibrated = calibrate(ingested, options)
+    _stage(job.id, "orient")
+    t0 = time.perf_counter()
+    oriented = orient(ingested, calibrated, options, caster=caster)
+    if oriented.report.get("run"):
+        timings["orient"] = time.perf_counter() - t0
+    _stage(job.id, "plan")
+    t0 = time.perf_counter()
+    planned = plan(ingested, calibrated, oriented, options)
+    timings["plan"] = time.perf_counter() - t0
+    light = Planned(tuple(replace(u, occluders=(), sequence=None) for u in planned.units), planned.warning)
+    kept = Prepared(ingested, calibrated, Oriented(None, oriented.report), light, timings, str(seq.name))
+    priors = {f.index: p for f, p in zip(ingested.manifest.frames, ingested.priors, strict=True)}
+    return kept, planned.units, priors
+
+
+def prepare_job(job_id: str) -> str:
+    """The prepare task (module docstring). Returns what it did: `queued <n> units`, `skipped`
+    (final, or prepared already), `busy` (another delivery prepares it) or `failed`."""
+    jid = uuid.UUID(str(job_id))
+    with job_lock("prepare", jid) as got:
+        if not got:
+            return "busy"
+        with Session(engine()) as s:
+            job = jobs.lock_job(s, job_id=jid)
+            if job.status in jobs.FINAL_STATES or job.stage not in jobs.PRE_UNIT_STAGES:
+                return "skipped"
+            if job.status == "accepted":
+                jobs.set_job_status(s, job_id=jid, status="running")
+            jobs.set_stage(s, job_id=jid, stage="ingest")
+            s.commit()
+        try:
+            kept, units, priors = _run_stages(job)
+            for u in units:
+                storage.write_pickle(storage.unit_path(settings().storage_dir, jid, u.building.id), u)
+            storage.write_pickle(job_dir(jid) / "priors.pkl", priors)
+            storage.write_pickle(job_dir(jid) / "prepared.pkl", kept)
+        except TRANSIENT:
+            raise
+        except Exception as exc:  # bad input, or a stage that cannot go on: the job fails
+            log.info("job %s failed in prepare: %s", jid, exc)
+            fail_job(jid, _message(exc))
+            return "failed"
+        tasks = {u.building.id: str(uuid.uuid4()) for u in units}
+        with Session(engine()) as s:
+            if jobs.lock_job(s, job_id=jid).status in jobs.FINAL_STATES:
+                return "skipped"  # dismissed meanwhile: nothing is written
+            jobs.add_units(s, job_id=jid, building_gml_ids=list(tasks))
+            jobs.set_unit_tasks(s, job_id=jid, task_ids=tasks)
+            jobs.set_stage(s, job_id=jid, stage="units")
+            s.commit()
+    for gml_id, task_id in tasks.items():
+        send("citytherm.run_unit", str(jid), gml_id, task_id=task_id)
+    if not tasks:
+        after_units(jid)
+    return f"queued {len(tasks)} units"
+
+
+# -- units ---------------------------------------------------------------------------------------
+def after_units(job_id: uuid.UUID) -> str:
+    """`finish_job_if_done`; queue the finish task when this call finished the job. Returns the
+    job's status."""
+    with Session(engine()) as s:
+        before = jobs.lock_job(s, job_id=job_id).status
+        status = jobs.finish_job_if_done(s, job_id=job_id)
+        s.commit()
+    if before not in jobs.FINAL_STATES and status in ("successful", "failed"):
+        send("citytherm.finish_job", str(job_id))
+    return status
+
+
+def run_unit(job_id: str, building_gml_id: str, *, task_id: str) -> str:
+    """The unit task (module docstring) as delivery `task_id`. Returns what it did: `stored`,
+    `failed` (the unit raised; recorded), or the claim's refusal (`final`, `dismissed`, `busy`,
+    `exhausted`)."""
+    jid = uuid.UUID(str(job_id))
+    st = settings()
+    with Session(engine()) as s:
+        decision = jobs.claim_unit(
+            s,
+            job_id=jid,
+            building_gml_id=building_gml_id,
+            task_id=task_id,
+            stale_after_s=stale_after_s(st.unit_timeout_s),
+            max_attempts=st.task_max_retries + 1,
+        )
+        s.commit()
+    if decision == "exhausted":
+        after_units(jid)
+    if decision != "run":
+        return decision
+    unit = storage.read_pickle(storage.unit_path(st.storage_dir, jid, building_gml_id))
+    priors = storage.read_pickle(job_dir(jid) / "priors.pkl")
+    result = run_building(unit)
+    with Session(engine()) as s:
+        job = jobs.lock_job(s, job_id=jid, share=True)  # a dismissal waits for this transaction
+        status = jobs.unit_status(s, job_id=jid, building_gml_id=building_gml_id)
+        if job.status in jobs.FINAL_STATES or status is None or status in jobs.FINAL_STATES:
+            return "dismissed" if job.status in jobs.FINAL_STATES else "final"
+        if isinstance(result, UnitFailure):
+            failed = {"status": "failed", "error": result.error}
+            jobs.set_unit_status(s, job_id=jid, building_gml_id=building_gml_id, **failed)
+        else:  # the unit becomes successful in this transaction
+            model = job.city_model_id
+            store_building_result(s, job_id=jid, model_id=model, result=result, priors=priors, commit=False)
+        s.commit()
+    after_units(jid)
+    return "failed" if isinstance(result, UnitFailure) else "stored"
+
+
+# -- finish --------------------------------------------------------------------------------------
+def _stored_results(
+    s: Session, job: jobs.JobRecord, kept: Prepared, out: Path
+) -> tuple[list[BuildingResult], list[UnitFailure]]:
+    """The job's stored results, plan order, tiles written into `out` and dropped from memory; and
+    its failed units (`UnitFailure`)."""
+    rows = s.execute(
+        text(
+            "SELECT b.gml_id, u.status, u.error FROM job_unit u JOIN building b ON b.id = u.building_id "
+            "WHERE u.job_id = :j"
+        ),
+        {"j": job.id},
+    ).all()
+    state = {g: (st, err) for g, st, err in rows}
+    results: list[BuildingResult] = []
+    failures: list[UnitFailure] = []
+    for u in kept.planned.units:
+        st, err = state.get(u.building.id, ("missing", None))
+        if st == "successful":
+            gml_id = u.building.id
+            r = load_building_result(s, job_id=job.id, model_id=job.city_model_id, building_gml_id=gml_id)
+            for tile in r.tiles:
+                write_tile(out, tile)
+            results.append(without_pixels(r))
+        elif st == "failed":
+            failures.append(UnitFailure(u.building.id, err or "failed"))
+    return results, failures
+
+
+def finish_job(job_id: str) -> str:
+    """The finish task: `jobs/<id>/results/` (built aside and renamed into place) and
+    `results.zip`, then `job.results_location`. Returns `written`, `skipped` (not finished by its
+    units, or written already) or `busy`."""
+    jid = uuid.UUID(str(job_id))
+    with job_lock("finish", jid) as got:
+        if not got:
+            return "busy"
+        with Session(engine()) as s:
+            job = jobs.lock_job(s, job_id=jid)
+            done = job.results_location is not None and Path(job.results_location).is_dir()
+            if job.status not in ("successful", "failed") or job.stage not in ("units", "finish") or done:
+                return "skipped"
+            jobs.set_stage(s, job_id=jid, stage="finish")
+            s.commit()
+        kept: Prepared = storage.read_pickle(job_dir(jid) / "prepared.pkl")
+        out, build = job_dir(jid) / "results", job_dir(jid) / f".tmp-results-{uuid.uuid4().hex}"
+        try:
+            build.mkdir(parents=True)
+            with Session(engine()) as s:
+                results, failures = _stored_results(s, job, kept, build)
+                units_s = s.execute(
+                    text(
+                        "SELECT EXTRACT(EPOCH FROM max(finished_at) - min(started_at)) FROM job_unit "
+                        "WHERE job_id = :j"
+                    ),
+                    {"j": jid},
+                ).scalar()
+            timings = {**kept.timings, "units": float(units_s or 0.0)}
+            options = RunOptions.from_dict(job.options)
+            finish(build, kept.ingested, kept.calibrated, kept.oriented, kept.planned, results, failures,
+                   options, timings, package=kept.package)
+            shutil.rmtree(out, ignore_errors=True)
+            os.replace(build, out)
+        finally:
+            shutil.rmtree(build, ignore_errors=True)
+        storage.zip_folder(out, job_dir(jid) / "results.zip")
+        mounting = json.loads((out / "orientation.json").read_text(encoding="utf-8")).get("mounting")
+        with Session(engine()) as s:
+            jobs.set_job_results(s, job_id=jid, location=str(out), timings_s=timings, mounting=mounting)
+            s.commit()
+    return "written"
+
+
+# -- sweep and imports ---------------------------------------------------------------------------
+def sweep() -> dict[str, int]:
+    """The sweeper (`docs/service.md`): finish jobs whose units are all final; queue again the
+    finish of final jobs without results, the prepare of jobs stuck before their units, and the
+    units whose worker died (`running`, heartbeat older than `stale_after_s`) or whose message
+    was lost (`accepted`, queued as long ago); remove abandoned uploads. Returns counts."""
+    st = settings()
+    stale = stale_after_s(st.unit_timeout_s)
+    counts = dict.fromkeys(("finished", "finish", "prepare", "units", "imports", "uploads"), 0)
+    with Session(engine()) as s:
+        done = jobs.jobs_to_sweep(s, which="done", older_than_s=0.0)
+        s.commit()
+    for jid in done:
+        counts["finished"] += after_units(jid) in ("successful", "failed")
+    for which, task in (("results", "citytherm.finish_job"), ("prepare", "citytherm.prepare_job")):
+        with Session(engine()) as s:
+            ids = jobs.jobs_to_sweep(s, which=which, older_than_s=stale)
+            s.commit()
+        for jid in ids:
+            send(task, str(jid))
+        counts["finish" if which == "results" else "prepare"] = len(ids)
+    with Session(engine()) as s:
+        units = jobs.requeue_units(s, stale_after_s=stale, queued_after_s=stale)
+        s.commit()
+    for jid, gml_id, task_id in units:
+        send("citytherm.run_unit", str(jid), gml_id, task_id=task_id)
+    counts["units"] = len(units)
+    with Session(engine()) as s:
+        imports = imports_to_requeue(s, older_than_s=stale)
+        s.commit()
+    for import_id in imports:
+        send("citytherm.import_model", import_id)
+    counts["imports"] = len(imports)
+    with Session(engine()) as s:
+        counts["uploads"] = len(remove_abandoned_uploads(s, st).sequence_uploads)
+    if any(counts.values()):
+        log.info("sweep: %s", counts)
+    return counts
+
+
+def _set_import(import_id: int, *, status: str, message: str | None, model_id: int | None = None) -> None:
+    with Session(engine()) as s:
+        row = get_model_import(s, import_id=import_id, lock=True)
+        row.status, row.message, row.city_model_id = status, message, model_id
+        row.progress = 1.0 if status == "ready" else row.progress
+        row.updated_at = s.execute(text("SELECT now()")).scalar_one()
+        s.commit()
+
+
+def import_model(import_id: int) -> str:
+    """The import task: `model_import.upload_path` into the database as `model_import.name`
+    (`db.importer.import_citygml`); the import becomes `ready` with its city model, or `failed`
+    with the message; the upload is removed. Returns the new status (or `skipped`)."""
+    with Session(engine()) as s:
+        row: ModelImport = get_model_import(s, import_id=int(import_id))
+        status, name, upload = row.status, row.name, row.upload_path
+    if status != "importing":
+        return "skipped"
+    path = Path(upload) if upload else None
+    try:
+        if path is None or not path.is_file():
+            raise InputDataError(f"the upload of city model {name!r} is missing ({upload})")
+        model_id = import_citygml(engine(), path, name=name).model_id
+    except ModelExistsError:  # an earlier delivery imported it and died before saying so
+        with engine().connect() as conn:
+            found = conn.execute(text("SELECT id FROM city_model WHERE name = :n"), {"n": name}).scalar()
+        if found is None:  # another delivery is importing it right now (the name lock is held)
+            return "busy"
+        model_id = int(found)
+    except TRANSIENT:
+        raise
+    except Exception as exc:
+        _set_import(import_id, status="failed", message=_message(exc)[:2000])
+        if path is not None:
+            path.unlink(missing_ok=True)
+        return "failed"
+    _set_import(import_id, status="ready", message=None, model_id=model_id)
+    path.unlink(missing_ok=True)
+    return "ready"
+
+
+def gave_up(task: str, args: tuple[Any, ...], exc: BaseException) -> None:
+    """Record the failure of a task that ran out of retries (or raised unexpectedly): its job,
+    unit or import fails with the error. Best effort: the database may be what is away."""
+    message = f"gave up after retries: {type(exc).__name__}: {exc}"[:2000]
+    try:
+        if task == "citytherm.run_unit":
+            jid = uuid.UUID(str(args[0]))
+            with Session(engine()) as s:
+                gml_id, failed = str(args[1]), {"status": "failed", "error": message}
+                jobs.set_unit_status(s, job_id=jid, building_gml_id=gml_id, **failed)
+                s.commit()
+            after_units(jid)
+        elif task in ("citytherm.prepare_job", "citytherm.finish_job"):
+            fail_job(uuid.UUID(str(args[0])), message)
+        elif task == "citytherm.import_model":
+            _set_import(int(args[0]), status="failed", message=message)
+    except Exception:
+        log.exception("could not record the failure of %s%r", task, args)

@@ -1,0 +1,62 @@
+"""The Celery tasks of the service (`docs/service.md`): thin wrappers, ids as arguments; the work
+is in `workers.service_job`.
+
+Every task retries transient errors (`service_job.TRANSIENT`: database, broker, storage) with
+exponential backoff (jittered, at most 300 s apart), at most `Settings.task_max_retries` times
+(`workers.celery_app` annotations), and never bad input (`service_job.BAD_INPUT`, which the work
+records as the job's or import's failure itself). A task that gives up records its failure
+(`service_job.gave_up`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from celery import Task
+
+from workers import service_job
+from workers.celery_app import app
+
+
+class ServiceTask(Task):
+    """Base of the citytherm tasks: autoretry for transient errors, failure recorded."""
+
+    autoretry_for = service_job.TRANSIENT
+    dont_autoretry_for = service_job.BAD_INPUT
+    retry_backoff = 2
+    retry_backoff_max = 300
+    retry_jitter = True
+
+    def on_failure(self, exc: BaseException, task_id: str, args: Any, kwargs: Any, einfo: Any) -> None:
+        """Out of retries, or an unexpected error: the job, unit or import fails with it."""
+        service_job.gave_up(self.name, tuple(args or ()), exc)
+
+
+@app.task(base=ServiceTask, name="citytherm.import_model")
+def import_model(import_id: int) -> str:
+    """Import the stored CityGML upload of model import `import_id`."""
+    return service_job.import_model(int(import_id))
+
+
+@app.task(base=ServiceTask, name="citytherm.prepare_job")
+def prepare_job(job_id: str) -> str:
+    """Ingest, calibrate, orient and plan job `job_id`; queue its units."""
+    return service_job.prepare_job(job_id)
+
+
+@app.task(base=ServiceTask, bind=True, name="citytherm.run_unit")
+def run_unit(self: Task, job_id: str, building_gml_id: str) -> str:
+    """Run and store one building unit of job `job_id`."""
+    return service_job.run_unit(job_id, building_gml_id, task_id=str(self.request.id))
+
+
+@app.task(base=ServiceTask, name="citytherm.finish_job")
+def finish_job(job_id: str) -> str:
+    """Write the results folder of job `job_id` and its zip."""
+    return service_job.finish_job(job_id)
+
+
+@app.task(base=ServiceTask, name="citytherm.sweep")
+def sweep() -> dict[str, int]:
+    """Find lost work in the database and queue it again; remove abandoned uploads."""
+    return service_job.sweep()
