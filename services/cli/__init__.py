@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import typer
 
-from services.cli import db_cmd, model_cmd, results_cmd, run_cmd, synth_cmd
+from services.cli import apikey_cmd, db_cmd, model_cmd, results_cmd, run_cmd, serve_cmd, synth_cmd, worker_cmd
 
 app = typer.Typer(
     name="citytherm",
@@ -18,7 +18,7 @@ app = typer.Typer(
     pretty_exceptions_show_locals=False,
 )
 
-for _module in (model_cmd, synth_cmd, run_cmd, db_cmd, results_cmd):
+for _module in (model_cmd, synth_cmd, run_cmd, db_cmd, results_cmd, apikey_cmd, serve_cmd, worker_cmd):
     _module.register(app)
 
 
