@@ -3,8 +3,11 @@
 # - postgresql-15-postgis-3: PostGIS for the city model database (integration tests, service)
 # - redis-server: Celery broker (integration tests, service)
 # - libusb-1.0-0, libgomp1: shared libraries open3d-cpu loads at import
+# - gdal-bin: ogrinfo reads the database as GIS clients do (tests/integration/test_db_srid.py)
+# - docker-compose: validates docker-compose.yml (tests/unit/test_compose.py; no Docker engine needed)
 set -euo pipefail
-pkgs=(postgresql-15 postgresql-15-postgis-3 redis-server libusb-1.0-0 libgomp1 libgl1 libglib2.0-0)
+pkgs=(postgresql-15 postgresql-15-postgis-3 redis-server libusb-1.0-0 libgomp1 libgl1 libglib2.0-0 gdal-bin
+      docker-compose)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")

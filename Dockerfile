@@ -1,0 +1,44 @@
+# citytherm: one image for the HTTP API (`citytherm serve`), the Celery workers (`citytherm worker`)
+# and one-shot commands (`citytherm db upgrade`, `citytherm import ...`); see docker-compose.yml.
+#   docker build -t citytherm .
+#   docker run --rm citytherm --help
+FROM python:3.11-slim-bookworm
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PIP_ROOT_USER_ACTION=ignore
+
+# Shared libraries open3d-cpu and opencv load at import (as .ci/system-deps.sh installs them for CI).
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 libgl1 libglib2.0-0 \
+ && rm -rf /var/lib/apt/lists/*
+
+# The dependencies first, in a layer of their own (read from pyproject.toml with tomllib), so that
+# a change to the code does not download and install them again.
+COPY pyproject.toml /tmp/citytherm-deps/pyproject.toml
+RUN python -c "import tomllib; d = tomllib.load(open('/tmp/citytherm-deps/pyproject.toml', 'rb')); print(*d['project']['dependencies'], sep=chr(10))" \
+        > /tmp/citytherm-deps/requirements.txt \
+ && pip install -r /tmp/citytherm-deps/requirements.txt \
+ && rm -rf /tmp/citytherm-deps
+
+# The project itself (not editable, no dev extra); the sources are not kept in the image.
+COPY . /src
+RUN pip install /src && rm -rf /src
+
+# A non-root user; /data (CITYTHERM_STORAGE_DIR) belongs to it, and a new named volume mounted
+# there takes this ownership, so the API and the workers can write to it.
+RUN groupadd --system --gid 10001 citytherm \
+ && useradd --system --uid 10001 --gid citytherm --home-dir /home/citytherm --create-home \
+        --shell /usr/sbin/nologin citytherm \
+ && mkdir -p /data /app \
+ && chown citytherm:citytherm /data /app
+
+ENV CITYTHERM_STORAGE_DIR=/data
+WORKDIR /app
+USER 10001:10001
+EXPOSE 8000
+
+ENTRYPOINT ["citytherm"]
+CMD ["serve", "--host", "0.0.0.0", "--port", "8000"]
