@@ -102,7 +102,10 @@ def _env(service: dict[str, Any]) -> dict[str, str]:
 
 
 def test_services_exist(config: dict[str, Any]) -> None:
-    assert set(config["services"]) >= {"db", "redis", "migrate", "api", "worker"}
+    assert set(config["services"]) >= {"db", "redis", "migrate", "api", "worker", "sweeper"}
+    # exactly one sweeper (beat) runs: the scaled workers do not, the sweeper service does
+    assert "--beat" not in config["services"]["worker"]["command"]
+    assert "--beat" in config["services"]["sweeper"]["command"]
 
 
 def test_db_and_redis_have_healthchecks_and_db_a_named_volume(config: dict[str, Any]) -> None:
