@@ -434,6 +434,53 @@ def test_model_view_export_and_delete(api: ApiServer, db_engine) -> None:
         assert left.scalar() == 0
 
 
+def test_models_imported_from_the_command_line_are_listed(api: ApiServer, db_engine) -> None:
+    """A model imported with `citytherm import` (no upload, no `model_import` row) is adopted:
+    listed `ready` with an API id that jobs can name; adopting twice makes no second row."""
+    from db.importer import import_citygml
+
+    city_model = import_citygml(db_engine, BUNDLED_MODEL, name="api-from-cli").model_id
+    with api.client("read") as c:
+        listed = [m for m in c.get("/models").json()["models"] if m["name"] == "api-from-cli"]
+        assert len(listed) == 1 and listed[0]["status"] == "ready", listed
+        view = c.get(f"/models/{listed[0]['id']}").json()
+        assert (view["status"], view["buildings"]) == ("ready", 61)
+        again = [m for m in c.get("/models").json()["models"] if m["name"] == "api-from-cli"]
+        assert [m["id"] for m in again] == [listed[0]["id"]]
+    with db_engine.connect() as conn:
+        rows = conn.execute(
+            text("SELECT count(*) FROM model_import WHERE city_model_id = :m"), {"m": city_model}
+        ).scalar_one()
+    assert rows == 1
+
+
+def test_lost_imports_are_found_for_the_sweeper(db_engine) -> None:
+    """An import `importing` with its upload stored and untouched for longer than the threshold is
+    handed to the sweeper once (then touched); a fresh one, or one without an upload, is not."""
+    from db.service_records import imports_to_requeue
+
+    with db_engine.begin() as conn:
+        ids = [
+            conn.execute(
+                text(
+                    "INSERT INTO model_import (name, status, upload_path, updated_at) VALUES "
+                    "(:n, 'importing', :p, now() - make_interval(secs => :age)) RETURNING id"
+                ),
+                {"n": f"api-lost-{k}", "p": p, "age": age},
+            ).scalar_one()
+            for k, (p, age) in enumerate((("/x/lost.gml", 600), ("/x/fresh.gml", 1), (None, 600)))
+        ]
+    with Session(db_engine) as s:
+        assert ids[0] in imports_to_requeue(s, older_than_s=60)
+        got = imports_to_requeue(s, older_than_s=60)
+        s.commit()
+    assert ids[1] not in got and ids[2] not in got
+    with Session(db_engine) as s:
+        assert ids[0] not in imports_to_requeue(s, older_than_s=60)  # touched: not again at once
+        s.execute(text("DELETE FROM model_import WHERE id = ANY(:i)"), {"i": ids})
+        s.commit()
+
+
 # -- abandoned uploads (the sweeper's helper) --------------------------------------------------
 def test_remove_abandoned_uploads(api: ApiServer, db_engine) -> None:
     from db.service_records import remove_abandoned_uploads
