@@ -50,6 +50,7 @@ __all__ = [
     "PackageError",
     "PackageFrames",
     "SequencePackage",
+    "find_root",
     "manifest_to_dict",
     "open_package",
     "read_frame_raw",
@@ -186,7 +187,9 @@ class SequencePackage:
         return f"SequencePackage(root={str(self.root)!r}, frames={len(self.manifest.frames)})"
 
 
-def _find_root(folder: Path) -> Path:
+def find_root(folder: Path) -> Path:
+    """The folder holding `sequence.json`: `folder`, or its single top-level folder (as archives
+    are often packed). Raises `PackageError` naming the manifest when there is none."""
     if (folder / MANIFEST).is_file():
         return folder
     children = [c for c in folder.iterdir() if not c.name.startswith(".") and c.name != "__MACOSX"]
@@ -238,7 +241,7 @@ def open_package(
     if not p.exists():
         raise PackageError(str(path), "package not found")
     if p.is_dir():
-        return SequencePackage(read_manifest(_find_root(p), check_frames=check_frames), _find_root(p))
+        return SequencePackage(read_manifest(find_root(p), check_frames=check_frames), find_root(p))
     if p.name == MANIFEST:
         return SequencePackage(read_manifest(p.parent, check_frames=check_frames), p.parent)
     if archive_kind(p) is None:
@@ -246,7 +249,7 @@ def open_package(
     tmp = Path(tempfile.mkdtemp(prefix="citytherm-seq-"))
     try:
         extract_archive(p, tmp, max_bytes=max_bytes, max_members=max_members)
-        root = _find_root(tmp)
+        root = find_root(tmp)
         return SequencePackage(read_manifest(root, check_frames=check_frames), root, tmp)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

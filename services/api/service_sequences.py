@@ -28,9 +28,9 @@ from starlette.requests import Request
 
 from db.errors import NotFoundError
 from db.jobs import register_sequence
-from db.sequence_archive import extract_archive
+from db.sequence_archive import archive_kind, extract_archive
 from db.sequence_manifest import PackageError
-from db.sequence_package import MANIFEST, SequencePackage, open_package
+from db.sequence_package import MANIFEST, SequencePackage, find_root, open_package
 from db.service_records import (
     UploadError,
     UploadStateError,
@@ -149,34 +149,12 @@ def _ordered_parts(settings: Settings, upload_id: uuid.UUID, parts: dict[str, An
     return paths
 
 
-def archive_format(path: Path) -> str:
-    """`"zip"`, `"tar.gz"` or `"tar"` from the file's first bytes; `PackageError` otherwise."""
-    with open(path, "rb") as f:
-        head = f.read(512)
-    if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):
-        return "zip"
-    if head[:2] == b"\x1f\x8b":
-        return "tar.gz"
-    if len(head) >= 262 and head[257:262] == b"ustar":
-        return "tar"
-    raise PackageError("archive", "not a .zip, .tar or .tar.gz archive (by its first bytes)")
-
-
-def _package_root(folder: Path) -> Path:
-    """The folder holding `sequence.json`: `folder`, or its single top-level folder."""
-    if (folder / MANIFEST).is_file():
-        return folder
-    children = [c for c in folder.iterdir() if not c.name.startswith(".") and c.name != "__MACOSX"]
-    if len(children) == 1 and children[0].is_dir() and (children[0] / MANIFEST).is_file():
-        return children[0]
-    raise PackageError(MANIFEST, "missing at the package root")
-
-
 def install_archive(settings: Settings, archive: Path, upload_id: uuid.UUID) -> tuple[SequencePackage, Path]:
     """Extract and read `archive` into `sequences/<upload_id>/` (replacing what an interrupted
     commit left there). Returns the opened package (manifest read, every frame checked) and the
     folder. On refusal nothing is left and `PackageError` names the field or file."""
-    archive_format(archive)
+    if archive_kind(archive) is None:
+        raise PackageError("archive", "not a .zip, .tar or .tar.gz archive (by its content)")
     seq_root = Path(settings.storage_dir) / "sequences"
     tmp = temp_name(seq_root)
     tmp.mkdir(parents=True)
@@ -185,7 +163,7 @@ def install_archive(settings: Settings, archive: Path, upload_id: uuid.UUID) -> 
         extract_archive(
             archive, tmp, max_bytes=settings.max_package_bytes, max_members=settings.max_package_members
         )
-        root = _package_root(tmp)
+        root = find_root(tmp)
         if final.exists():
             shutil.rmtree(final)
         root.replace(final)
