@@ -82,6 +82,9 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "task_reject_on_worker_lost": True,
         "task_acks_on_failure_or_timeout": True,
         "worker_prefetch_multiplier": 1,
+        # a pool process imports the pipeline and Open3D when it starts (`workers.tasks`): give it
+        # the time that takes on a loaded machine before its parent gives up on it
+        "worker_proc_alive_timeout": 120.0,
         "task_default_queue": QUEUE,
         "task_serializer": "json",
         "accept_content": ["json"],

@@ -13,9 +13,19 @@ from __future__ import annotations
 from typing import Any
 
 from celery import Task
+from celery.signals import worker_process_init
 
 from workers import service_job
 from workers.celery_app import app
+
+
+@worker_process_init.connect
+def preload(**_: Any) -> None:
+    """Each pool process imports the pipeline and Open3D (about 3 s) when it starts, as
+    `citytherm run` preloads its process pool, so that no job waits for it."""
+    import open3d  # noqa: F401
+
+    import workers.pipeline.units  # noqa: F401
 
 
 class ServiceTask(Task):
