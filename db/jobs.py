@@ -20,9 +20,10 @@ import numpy as np
 from sqlalchemy import text
 from sqlalchemy.orm import Session
 
-from db.errors import CityDBError, NotFoundError
+from db.errors import CityDBError, InputDataError, NotFoundError
 from db.geomcodec import encode_linestring_z, encode_point_z
-from db.srid import database_srid, to_database
+from db.srid import database_srid
+from workers.pipeline.geometry.georef import GeorefError, transform_positions
 from workers.pipeline.geometry.manifest import SequenceManifest
 from workers.pipeline.geometry.pose import Pose
 
@@ -33,12 +34,14 @@ __all__ = [
     "StateError",
     "add_units",
     "claim_unit",
+    "count_delivery",
     "create_job",
     "dismiss_job",
     "finish_job_if_done",
     "job_counts",
     "jobs_to_sweep",
     "lock_job",
+    "note_results_failed",
     "register_sequence",
     "requeue_units",
     "set_job_results",
@@ -218,8 +221,11 @@ def finish_job_if_done(session: Session, *, job_id: uuid.UUID | str) -> str:
 
 
 def dismiss_job(session: Session, *, job_id: uuid.UUID | str) -> None:
-    """Dismiss a job and its pending units (stored results stay)."""
+    """Dismiss a job and its pending units (stored results stay); a job dismissed already stays
+    as it was."""
     jid = _uuid(job_id)
+    if session.execute(text("SELECT status FROM job WHERE id = :j"), {"j": jid}).scalar() == "dismissed":
+        return
     set_job_status(session, job_id=jid, status="dismissed")
     session.execute(
         text(
@@ -242,13 +248,30 @@ def register_sequence(
 ) -> int:
     """Insert a sequence (its `sequence.json` as jsonb, where it is stored), one row per frame
     (with the prior pose when `priors[i]` is given) and the trajectory of the frame positions.
-    `srid` is the EPSG code of the manifest CRS (kept in `sequence.srid`); the trajectory
-    (`LINESTRING Z`) and the prior centres (`POINT Z`) are stored in the database SRID, heights
-    kept. Returns the sequence id."""
+    `srid` is the EPSG code of the manifest CRS (kept in `sequence.srid`; 0 for `"model"`); the
+    trajectory (`LINESTRING Z`) and the prior centres (`POINT Z`, given in the manifest's CRS)
+    are stored in the database SRID, heights kept (geographic positions are `[lat, lon, h]`:
+    `georef.transform_positions`). A sequence in `"model"` coordinates gets neither (its model is
+    known only with a job). Raises `InputDataError` naming `crs` for a CRS that cannot be placed.
+    Returns the sequence id."""
     db_srid = database_srid(session.connection())
-    to_db = to_database(manifest.crs, db_srid)
+    in_model = manifest.crs.strip().lower() == "model"
+
+    def to_db(points: np.ndarray) -> np.ndarray:
+        try:
+            return transform_positions(points, manifest.crs, f"EPSG:{db_srid}")
+        except (GeorefError, ValueError) as exc:
+            raise InputDataError(f"crs: {manifest.crs!r} cannot be placed in EPSG:{db_srid}: {exc}") from exc
+
     pos = np.array([f.position for f in manifest.frames], dtype=np.float64).reshape(-1, 3)
-    traj = encode_linestring_z(to_db.points(pos), db_srid) if len(pos) >= 2 else None
+    traj = encode_linestring_z(to_db(pos), db_srid) if len(pos) >= 2 and not in_model else None
+    centres: list[np.ndarray | None] = [None] * len(manifest.frames)
+    if priors is not None and not in_model:
+        given = [i for i, p in enumerate(priors) if p is not None]
+        if given:
+            moved = to_db(np.array([priors[i].center for i in given], dtype=np.float64))
+            for i, c in zip(given, moved, strict=True):
+                centres[i] = c
     sid = session.execute(
         text(
             "INSERT INTO sequence (name, manifest, storage_location, frame_count, srs_name, srid, "
@@ -274,7 +297,7 @@ def register_sequence(
                 "i": f.index,
                 "f": f.file,
                 "t": f.time,
-                "c": None if prior is None else encode_point_z(to_db.points(prior.center[None])[0], db_srid),
+                "c": None if centres[i] is None else encode_point_z(centres[i], db_srid),
                 "r": prior.R_world_from_cam.ravel().tolist() if prior is not None else None,
                 "rec": json.dumps({"position": f.position.tolist(), "attitude_deg": f.attitude_deg.tolist()}),
             }
@@ -359,7 +382,8 @@ def set_unit_tasks(session: Session, *, job_id: uuid.UUID | str, task_ids: Mappi
     session.execute(
         text(
             "UPDATE job_unit u SET task_id = :t, heartbeat_at = now() FROM building b "
-            "WHERE u.building_id = b.id AND u.job_id = :j AND b.gml_id = :g AND NOT b.is_part"
+            "WHERE u.building_id = b.id AND u.job_id = :j AND b.gml_id = :g AND NOT b.is_part "
+            "AND u.status = 'accepted'"
         ),
         [{"j": _uuid(job_id), "g": g, "t": t} for g, t in task_ids.items()],
     )
@@ -468,7 +492,8 @@ def jobs_to_sweep(session: Session, *, which: str, older_than_s: float, limit: i
         "done": "j.status = 'running' AND j.stage = 'units' AND NOT EXISTS (SELECT 1 FROM job_unit u "
         "WHERE u.job_id = j.id AND u.status IN ('accepted', 'running'))",
         "results": "j.status IN ('successful', 'failed') AND j.stage IN ('units', 'finish') "
-        "AND j.results_location IS NULL AND j.updated_at < now() - make_interval(secs => :old)",
+        "AND j.results_location IS NULL AND j.error IS NULL "
+        "AND j.updated_at < now() - make_interval(secs => :old)",
         "prepare": "j.status IN ('accepted', 'running') AND j.stage = ANY(:pre) "
         "AND j.updated_at < now() - make_interval(secs => :old)",
     }[which]
@@ -493,3 +518,22 @@ def unit_task_ids(session: Session, *, job_id: uuid.UUID | str) -> list[tuple[st
             {"j": _uuid(job_id)},
         ).all()
     ]
+
+
+def count_delivery(session: Session, *, job_id: uuid.UUID | str) -> int:
+    """Count one more delivery of the job's prepare or finish task; returns the count."""
+    return int(
+        session.execute(
+            text("UPDATE job SET attempts = attempts + 1 WHERE id = :j RETURNING attempts"),
+            {"j": _uuid(job_id)},
+        ).scalar_one()
+    )
+
+
+def note_results_failed(session: Session, *, job_id: uuid.UUID | str, error: str) -> None:
+    """A final job whose results folder could not be written: the error is recorded (the
+    sweeper then leaves the job alone; its rows in PostGIS stay)."""
+    session.execute(
+        text("UPDATE job SET error = :e, stage = 'finish', updated_at = now() WHERE id = :j"),
+        {"j": _uuid(job_id), "e": error},
+    )

@@ -221,6 +221,8 @@ class Job(Base):
     results_location: Mapped[str | None] = mapped_column(Text)
     #: the stage the job is in: accepted, ingest, calibrate, orient, plan, units, finish.
     stage: Mapped[str] = mapped_column(Text, server_default="accepted")
+    #: deliveries of its prepare and finish tasks (bounded: a task whose worker dies every time).
+    attempts: Mapped[int] = mapped_column(Integer, server_default="0")
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
@@ -498,6 +500,8 @@ class ModelImport(Base):
     city_model_id: Mapped[int | None] = mapped_column(ForeignKey("city_model.id", ondelete="SET NULL"))
     bytes: Mapped[int] = mapped_column(BigInteger, server_default="0")
     progress: Mapped[float] = mapped_column(Double, server_default="0")
+    #: deliveries of its import task (bounded).
+    attempts: Mapped[int] = mapped_column(Integer, server_default="0")
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
     updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
 

@@ -30,10 +30,15 @@ from celery import Celery
 
 from db.settings import Settings
 
-__all__ = ["QUEUE", "TASK_NAMES", "app", "celery_config", "configure", "grace_s", "stale_after_s"]
+__all__ = [
+    "QUEUE", "SWEEP_QUEUE", "TASK_NAMES", "app", "celery_config", "configure", "grace_s", "stale_after_s"
+]  # fmt: skip
 
-#: the one queue all citytherm tasks use
+#: the queue of the work (imports, prepares, units, finishes)
 QUEUE = "citytherm"
+#: the sweeper's own queue, consumed by the `--beat` worker beside QUEUE: a backlog of units in
+#: QUEUE never delays (or expires) a sweep
+SWEEP_QUEUE = "citytherm-sweep"
 TASK_NAMES = (
     "citytherm.import_model",
     "citytherm.prepare_job",
@@ -86,6 +91,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         # the time that takes on a loaded machine before its parent gives up on it
         "worker_proc_alive_timeout": 120.0,
         "task_default_queue": QUEUE,
+        "task_routes": {"citytherm.sweep": {"queue": SWEEP_QUEUE}},
         "task_serializer": "json",
         "accept_content": ["json"],
         "task_annotations": annotations,

@@ -147,17 +147,31 @@ def job_lock(kind: str, job_id: uuid.UUID) -> Iterator[bool]:
                     conn.invalidate()
 
 
-def fail_job(job_id: uuid.UUID, message: str) -> None:
-    """Mark a job that is not final yet `failed` with `message`."""
+def max_deliveries() -> int:
+    """How often a prepare, finish or import task is delivered before its job or import fails."""
+    return int(settings().task_max_retries) + 2
+
+
+def fail_job(job_id: uuid.UUID, message: str, error: str | None = None) -> None:
+    """Mark a job that is not final yet `failed` with `message` (what API clients read) and
+    `error` (the full text, for operators; default: the message)."""
     with Session(engine()) as s:
         if jobs.lock_job(s, job_id=job_id).status not in jobs.FINAL_STATES:
-            message = message[:2000]
-            jobs.set_job_status(s, job_id=job_id, status="failed", message=message, error=message)
+            message, error = message[:2000], (error or message)[:8000]
+            jobs.set_job_status(s, job_id=job_id, status="failed", message=message, error=error)
         s.commit()
 
 
 def _message(exc: BaseException) -> str:
-    return str(exc) if isinstance(exc, BAD_INPUT) else f"{type(exc).__name__}: {exc}"
+    """What a client is told: the message of bad input (it names the file or field), else only
+    the kind of error (the full text, which may hold SQL or server names, goes to `_detail`)."""
+    if isinstance(exc, BAD_INPUT):
+        return str(exc)
+    return f"internal error ({type(exc).__name__}); the operators find it in the worker log"
+
+
+def _detail(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}"
 
 
 # -- prepare -------------------------------------------------------------------------------------
@@ -196,7 +210,8 @@ def _run_stages(job: jobs.JobRecord) -> tuple[Prepared, tuple[Any, ...], dict[in
             raise InputDataError(f"city model {m.name!r} is {m.state}, not complete")
         if seq is None:
             raise RunError(f"job {job.id} has no sequence")
-        if not (seq.srs_name and m.srs_name and same_horizontal(seq.srs_name, m.srs_name)):
+        in_model = (seq.srs_name or "").strip().lower() == "model"  # positions in the model's CRS
+        if not in_model and not (seq.srs_name and m.srs_name and same_horizontal(seq.srs_name, m.srs_name)):
             raise RunError(
                 f"the sequence's CRS {seq.srs_name} differs from the city model's CRS {m.srs_name}: "
                 "a job runs in the model's CRS; record the sequence in it"
@@ -248,6 +263,10 @@ def prepare_job(job_id: str) -> str:
             job = jobs.lock_job(s, job_id=jid)
             if job.status in jobs.FINAL_STATES or job.stage not in jobs.PRE_UNIT_STAGES:
                 return "skipped"
+            if jobs.count_delivery(s, job_id=jid) > max_deliveries():
+                s.commit()
+                fail_job(jid, f"prepare gave up after {max_deliveries()} deliveries (its worker died)")
+                return "failed"
             if job.status == "accepted":
                 jobs.set_job_status(s, job_id=jid, status="running")
             jobs.set_stage(s, job_id=jid, stage="ingest")
@@ -262,12 +281,13 @@ def prepare_job(job_id: str) -> str:
             raise
         except Exception as exc:  # bad input, or a stage that cannot go on: the job fails
             log.info("job %s failed in prepare: %s", jid, exc)
-            fail_job(jid, _message(exc))
+            fail_job(jid, _message(exc), _detail(exc))
             return "failed"
         tasks = {u.building.id: str(uuid.uuid4()) for u in units}
         with Session(engine()) as s:
-            if jobs.lock_job(s, job_id=jid).status in jobs.FINAL_STATES:
-                return "skipped"  # dismissed meanwhile: nothing is written
+            now = jobs.lock_job(s, job_id=jid)
+            if now.status in jobs.FINAL_STATES or now.stage not in jobs.PRE_UNIT_STAGES:
+                return "skipped"  # dismissed meanwhile, or another delivery wrote the units
             jobs.add_units(s, job_id=jid, building_gml_ids=list(tasks))
             jobs.set_unit_tasks(s, job_id=jid, task_ids=tasks)
             jobs.set_stage(s, job_id=jid, stage="units")
@@ -373,6 +393,10 @@ def finish_job(job_id: str) -> str:
             done = job.results_location is not None and Path(job.results_location).is_dir()
             if job.status not in ("successful", "failed") or job.stage not in ("units", "finish") or done:
                 return "skipped"
+            if jobs.count_delivery(s, job_id=jid) > 2 * max_deliveries():  # prepare's and finish's
+                jobs.note_results_failed(s, job_id=jid, error="finish gave up: its worker died each time")
+                s.commit()
+                return "failed"
             jobs.set_stage(s, job_id=jid, stage="finish")
             s.commit()
         kept: Prepared = storage.read_pickle(job_dir(jid) / "prepared.pkl")
@@ -401,6 +425,9 @@ def finish_job(job_id: str) -> str:
         with Session(engine()) as s:
             jobs.set_job_results(s, job_id=jid, location=str(out), timings_s=timings, mounting=mounting)
             s.commit()
+        # the unit payloads served their purpose (results and rows are written)
+        shutil.rmtree(job_dir(jid) / "units", ignore_errors=True)
+        (job_dir(jid) / "priors.pkl").unlink(missing_ok=True)
     return "written"
 
 
@@ -463,6 +490,15 @@ def import_model(import_id: int) -> str:
     if status != "importing":
         return "skipped"
     path = Path(upload) if upload else None
+    with Session(engine()) as s:
+        count = "UPDATE model_import SET attempts = attempts + 1 WHERE id = :i RETURNING attempts"
+        deliveries = int(s.execute(text(count), {"i": int(import_id)}).scalar_one())
+        s.commit()
+    if deliveries > max_deliveries():
+        _set_import(import_id, status="failed", message=f"import gave up after {max_deliveries()} deliveries")
+        if path is not None:
+            path.unlink(missing_ok=True)
+        return "failed"
     try:
         if path is None or not path.is_file():
             raise InputDataError(f"the upload of city model {name!r} is missing ({upload})")
@@ -476,6 +512,7 @@ def import_model(import_id: int) -> str:
     except TRANSIENT:
         raise
     except Exception as exc:
+        log.info("import %s failed: %s", import_id, _detail(exc))
         _set_import(import_id, status="failed", message=_message(exc)[:2000])
         if path is not None:
             path.unlink(missing_ok=True)
@@ -488,7 +525,8 @@ def import_model(import_id: int) -> str:
 def gave_up(task: str, args: tuple[Any, ...], exc: BaseException) -> None:
     """Record the failure of a task that ran out of retries (or raised unexpectedly): its job,
     unit or import fails with the error. Best effort: the database may be what is away."""
-    message = f"gave up after retries: {type(exc).__name__}: {exc}"[:2000]
+    message = f"gave up after retries: {_detail(exc)}"[:2000]  # for operators (error columns)
+    public = f"gave up after retries: {_message(exc)}"[:2000]  # for API clients
     try:
         if task == "citytherm.run_unit":
             jid = uuid.UUID(str(args[0]))
@@ -497,9 +535,13 @@ def gave_up(task: str, args: tuple[Any, ...], exc: BaseException) -> None:
                 jobs.set_unit_status(s, job_id=jid, building_gml_id=gml_id, **failed)
                 s.commit()
             after_units(jid)
-        elif task in ("citytherm.prepare_job", "citytherm.finish_job"):
-            fail_job(uuid.UUID(str(args[0])), message)
+        elif task == "citytherm.prepare_job":
+            fail_job(uuid.UUID(str(args[0])), public, message)
+        elif task == "citytherm.finish_job":  # the job is final: its results are what failed
+            with Session(engine()) as s:
+                jobs.note_results_failed(s, job_id=uuid.UUID(str(args[0])), error=message)
+                s.commit()
         elif task == "citytherm.import_model":
-            _set_import(int(args[0]), status="failed", message=message)
+            _set_import(int(args[0]), status="failed", message=public)
     except Exception:
         log.exception("could not record the failure of %s%r", task, args)

@@ -247,6 +247,9 @@ def register_path(session: Session, settings: Settings, *, path: str, base: str)
     p = (p if p.is_absolute() else storage / p).resolve()
     if not p.is_relative_to(storage):
         raise PackageError("path", "must name a package inside the storage directory")
+    if p.is_relative_to(storage / "uploads") or any(part.startswith(".tmp") for part in p.parts):
+        # uploads and temporary folders are removed by the sweeper: a package there would vanish
+        raise PackageError("path", "must not lie in uploads/ or a temporary folder of the storage")
     if not p.exists():
         raise PackageError("path", f"no package at {path!r} in the storage directory")
     uid = uuid.uuid4()

@@ -28,13 +28,15 @@ def worker(
     hostname: str | None = typer.Option(None, "--hostname", "-n", help="Node name (default: unique)."),
 ) -> None:
     """Start a Celery worker (prefork) that runs the service's tasks."""
-    from workers.celery_app import configure
+    from workers.celery_app import SWEEP_QUEUE, configure
 
     settings = get_settings()
     app = configure(settings)
     n = concurrency if concurrency is not None else settings.worker_concurrency
     if n < 1:
         raise typer.BadParameter(f"--concurrency must be >= 1, got {n}")
+    if beat and SWEEP_QUEUE not in queues.split(","):
+        queues = f"{queues},{SWEEP_QUEUE}"  # the sweeper's tasks, apart from the work's backlog
     argv = [
         "worker",
         f"--concurrency={n}",

@@ -121,3 +121,36 @@ def test_job_lifecycle_and_sequence(db_engine) -> None:
         dismiss_job(session, job_id=job2)
         assert job_counts(session, job_id=job2)["dismissed"] == len(buildings)
         session.commit()
+
+
+def test_sequences_in_model_and_geographic_coordinates_register(db_engine) -> None:
+    """A sequence in `"model"` coordinates registers without a trajectory (its CRS is known only
+    with a job's model); one in EPSG:4979 (`[lat, lon, h]`) gets its trajectory where PROJ puts
+    those points in the database SRID (east, north; heights kept)."""
+    import pyproj
+
+    cam = Camera(width=640, height=512, fx=800.0, fy=800.0, cx=319.5, cy=255.5)
+    latlon = [(52.52 + 1e-4 * i, 13.40, 80.0) for i in range(3)]
+    frames = tuple(
+        FrameRecord(i, f"frames/{i:06d}.png", 0.1 * i, np.array(p), np.zeros(3)) for i, p in enumerate(latlon)
+    )
+    with Session(db_engine) as s:
+        in_model = register_sequence(
+            s, name="jobs-in-model", manifest=SequenceManifest("car", "model", cam, Radiometry(),
+            Mounting(np.eye(3)), frames), manifest_json={}, storage_location="/x", srid=0,
+        )  # fmt: skip
+        geo = register_sequence(
+            s, name="jobs-geographic", manifest=SequenceManifest("car", "EPSG:4979", cam, Radiometry(),
+            Mounting(np.eye(3)), frames), manifest_json={}, storage_location="/y", srid=4979,
+        )  # fmt: skip
+        s.commit()
+    with db_engine.connect() as c:
+        traj = text("SELECT trajectory IS NULL FROM sequence WHERE id = :s")
+        none = c.execute(traj, {"s": in_model}).scalar()
+        first = c.execute(
+            text("SELECT ST_X(p), ST_Y(p), ST_Z(p) FROM sequence, ST_PointN(trajectory, 1) p WHERE id = :s"),
+            {"s": geo},
+        ).one()
+    assert none is True
+    x, y = pyproj.Transformer.from_crs(4326, TEST_SRID, always_xy=True).transform(13.40, 52.52)
+    assert abs(first[0] - x) < 1e-3 and abs(first[1] - y) < 1e-3 and first[2] == 80.0

@@ -177,7 +177,8 @@ def test_export_gives_the_models_own_coordinates_back(two_crs, db_engine, tmp_pa
     a = {p.id: p.exterior.coords for b in b_in for p in b.iter_polygons()}
     b = {p.id: p.exterior.coords for b in b_out for p in b.iter_polygons()}
     assert a.keys() == b.keys()
-    worst = max(float(np.max(np.abs(a[k][: len(b[k])] - b[k][: len(a[k])]))) for k in a)
+    assert all(a[k].shape == b[k].shape for k in a)
+    worst = max(float(np.max(np.abs(a[k] - b[k]))) for k in a)
     assert worst <= 1e-6
 
 
@@ -215,3 +216,24 @@ def test_an_unknown_crs_is_refused(db_engine, tmp_path) -> None:
         import_citygml(db_engine, odd, name="srid-odd")
     with db_engine.connect() as c:
         assert c.execute(text("SELECT count(*) FROM city_model WHERE name = 'srid-odd'")).scalar_one() == 0
+
+
+def test_the_workers_load_a_transformed_model_in_its_own_crs(two_crs, db_engine) -> None:
+    """What a job's prepare task reads (`db.model_load.iter_model_buildings`): the NRW model,
+    stored in the database SRID, comes back in EPSG:25832 with the file's ids and vertices (to the
+    micrometre), and a box in the model's CRS selects the buildings it meets."""
+    from db.model_load import iter_model_buildings
+
+    _, nrw = two_crs
+    _, want = read_model(NRW)
+    with db_engine.connect() as c:
+        got = list(iter_model_buildings(c, nrw.model_id))
+        first = next(want[0].iter_polygons()).exterior.coords
+        x, y = float(first[0, 0]), float(first[0, 1])
+        boxed = [b.id for b in iter_model_buildings(c, nrw.model_id, bbox=(x - 1, y - 1, x + 1, y + 1))]
+    assert [b.id for b in got] == [b.id for b in want]
+    a = {p.id: p.exterior.coords for b in want for p in b.iter_polygons()}
+    b = {p.id: p.exterior.coords for b in got for p in b.iter_polygons()}
+    assert a.keys() == b.keys() and all(a[k].shape == b[k].shape for k in a)
+    assert max(float(np.max(np.abs(a[k] - b[k]))) for k in a) <= 1e-6
+    assert want[0].id in boxed and 0 < len(boxed) < len(want)
