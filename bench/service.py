@@ -74,6 +74,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from tests.integration.stack import PrivatePostgres, PrivateRedis, free_port, remove  # noqa: E402
+from tests.integration.stack import wait_for as stack_wait_for  # noqa: E402
 
 SRID = 25833  # the Berlin model's (ETRS89 / UTM 33N): its coordinates are stored as written
 EXE = str(Path(sys.executable).with_name("citytherm"))
@@ -90,17 +91,8 @@ def load() -> float:
 
 
 def wait_for(what: str, cond: Callable[[], Any], patience_s: float = PATIENCE_S, step_s: float = 0.2) -> Any:
-    """Poll `cond` until it returns something true (transport errors count as not yet)."""
-    deadline = time.monotonic() + patience_s
-    while time.monotonic() < deadline:
-        try:
-            got = cond()
-        except httpx.TransportError:
-            got = None
-        if got:
-            return got
-        time.sleep(step_s)
-    raise TimeoutError(f"gave up waiting for {what}")
+    """`stack.wait_for` with this bench's patience."""
+    return stack_wait_for(what, cond, patience_s, step_s)
 
 
 def content_md5(data: bytes) -> str:

@@ -15,9 +15,29 @@ import socket
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 PG_BIN = Path(os.environ.get("CITYTHERM_TEST_PG_BIN", "/usr/lib/postgresql/15/bin"))
+
+
+def wait_for(what: str, cond: Callable[[], Any], patience_s: float = 300.0, step_s: float = 0.2) -> Any:
+    """Poll `cond` until it returns something true; a connection refused or dropped (an HTTP
+    transport error, `OSError`) counts as "not yet". Raises `TimeoutError` after `patience_s`
+    (a bound on waiting, never a timing assertion)."""
+    import httpx
+
+    deadline = time.monotonic() + patience_s
+    while time.monotonic() < deadline:
+        try:
+            got = cond()
+        except (httpx.TransportError, OSError):
+            got = None
+        if got:
+            return got
+        time.sleep(step_s)
+    raise TimeoutError(f"gave up waiting for {what}")
 
 
 def free_port() -> int:

@@ -36,6 +36,7 @@ from db.citygml.reader import read_model
 from db.synth_files import write_synthetic_package
 from tests.integration.conftest import citytherm_exe, content_md5, tar_gz
 from tests.integration.stack import PrivatePostgres, PrivateRedis, free_port, remove
+from tests.integration.stack import wait_for as stack_wait_for
 from workers.job import RunOptions
 from workers.pipeline.synth import BUNDLED_MODEL, ErrorOptions, SynthOptions, synthesize
 from workers.run import run_job
@@ -60,18 +61,9 @@ PENDING = "SELECT count(*) FROM job_unit WHERE job_id = %s AND status IN ('accep
 PATIENCE_S = 300.0
 
 
-def wait_for(what: str, cond: Callable[[], Any], patience_s: float = PATIENCE_S) -> Any:
-    """Poll `cond` until it returns something true."""
-    deadline = time.monotonic() + patience_s
-    while time.monotonic() < deadline:
-        try:
-            got = cond()
-        except httpx.TransportError:
-            got = None
-        if got:
-            return got
-        time.sleep(0.2)
-    raise AssertionError(f"gave up waiting for {what}")
+def wait_for(what: str, cond: Callable[[], Any]) -> Any:
+    """Poll `cond` until it returns something true (`stack.wait_for`, this module's patience)."""
+    return stack_wait_for(what, cond, PATIENCE_S)
 
 
 @dataclass
