@@ -9,13 +9,16 @@ that was away leaves an `accepted` job that the sweeper queues again.
 from __future__ import annotations
 
 import logging
+import shutil
 import uuid
 
 from sqlalchemy.orm import Session
 
 from db.jobs import FINAL_STATES, create_job, dismiss_job, lock_job, unit_task_ids
+from db.settings import Settings
 from workers.celery_app import app
 from workers.job import RunOptions
+from workers.service_storage import job_dir
 
 __all__ = ["dismiss", "queue_model_import", "submit_job"]
 
@@ -45,6 +48,12 @@ def dismiss(session: Session, *, job_id: uuid.UUID) -> None:
     tasks = unit_task_ids(session, job_id=job_id) if job.status not in FINAL_STATES else []
     dismiss_job(session, job_id=job_id)
     session.commit()
+    # a dismissed job never finishes: its unit payloads go now (a queued unit finds the job
+    # dismissed before it would read one; the stored results stay)
+    folder = job_dir(Settings().storage_dir, job_id)
+    shutil.rmtree(folder / "units", ignore_errors=True)
+    for name in ("priors.pkl", "prepared.pkl"):
+        (folder / name).unlink(missing_ok=True)
     queued = [t for t, status in tasks if status == "accepted"]
     running = [t for t, status in tasks if status == "running"]
     try:

@@ -263,7 +263,7 @@ def _settled(db_engine: Any, job_id: uuid.UUID) -> bool:
     return True
 
 
-def test_a_dismissed_job_gets_nothing_more(scene, celery_workers, db_engine):
+def test_a_dismissed_job_gets_nothing_more(scene, celery_workers, db_engine, service_env):
     celery_workers.ensure()
     job_id = submit(
         db_engine,
@@ -276,8 +276,11 @@ def test_a_dismissed_job_gets_nothing_more(scene, celery_workers, db_engine):
         return "successful" in states and "accepted" in states
 
     wait_for("a job half done", midway)
+    folder = Path(service_env["CITYTHERM_STORAGE_DIR"]) / "jobs" / str(job_id)
+    assert any((folder / "units").iterdir())  # the payloads of the units still to run
     with Session(db_engine) as s:
         dismiss(s, job_id=job_id)
+    assert not (folder / "units").exists() and not (folder / "prepared.pkl").exists()
     before_units, before_apps = units(db_engine, job_id), appearances(db_engine, job_id)
     assert job_row(db_engine, job_id)["status"] == "dismissed"
     assert not any(u["status"] in ("accepted", "running") for u in before_units.values())
