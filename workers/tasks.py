@@ -1,11 +1,11 @@
 """The Celery tasks of the service (`docs/service.md`): thin wrappers, ids as arguments; the work
-is in `workers.service_job`.
+is in `workers.service_job` and `workers.service_upkeep`.
 
 Every task retries transient errors (`service_job.TRANSIENT`: database, broker, storage) with
 exponential backoff (jittered, at most 300 s apart), at most `Settings.task_max_retries` times
 (`workers.celery_app` annotations), and never bad input (`service_job.BAD_INPUT`, which the work
 records as the job's or import's failure itself). A task that gives up records its failure
-(`service_job.gave_up`).
+(`service_upkeep.gave_up`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any
 from celery import Task
 from celery.signals import worker_process_init
 
-from workers import service_job
+from workers import service_job, service_upkeep
 from workers.celery_app import app
 
 
@@ -39,13 +39,13 @@ class ServiceTask(Task):
 
     def on_failure(self, exc: BaseException, task_id: str, args: Any, kwargs: Any, einfo: Any) -> None:
         """Out of retries, or an unexpected error: the job, unit or import fails with it."""
-        service_job.gave_up(self.name, tuple(args or ()), exc)
+        service_upkeep.gave_up(self.name, tuple(args or ()), exc)
 
 
 @app.task(base=ServiceTask, name="citytherm.import_model")
 def import_model(import_id: int) -> str:
     """Import the stored CityGML upload of model import `import_id`."""
-    return service_job.import_model(int(import_id))
+    return service_upkeep.import_model(int(import_id))
 
 
 @app.task(base=ServiceTask, name="citytherm.prepare_job")
@@ -69,4 +69,4 @@ def finish_job(job_id: str) -> str:
 @app.task(base=ServiceTask, name="citytherm.sweep")
 def sweep() -> dict[str, int]:
     """Find lost work in the database and queue it again; remove abandoned uploads."""
-    return service_job.sweep()
+    return service_upkeep.sweep()

@@ -9,7 +9,7 @@ and checked (size limit, `Content-MD5`), so a part is either the whole old one o
 one. A commit assembles the parts in order into one archive (`.zip`, `.tar`, `.tar.gz`: told by
 its first bytes), extracts it with `db.sequence_archive` into `sequences/.tmp-*`, reads it with
 the package reader (every frame checked), renames the package folder to `sequences/<id>/` and
-registers it (`db.jobs.register_sequence`) in one transaction; on any refusal the temporary
+registers it (`db.sequences.register_sequence`) in one transaction; on any refusal the temporary
 folders are removed and the upload stays open (its `message` says why).
 """
 
@@ -27,10 +27,10 @@ from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
 
 from db.errors import NotFoundError
-from db.jobs import register_sequence
 from db.sequence_archive import archive_kind, extract_archive
 from db.sequence_manifest import PackageError
 from db.sequence_package import MANIFEST, SequencePackage, find_root, open_package
+from db.sequences import register_sequence
 from db.service_records import (
     UploadError,
     UploadStateError,

@@ -17,10 +17,10 @@ from db.jobs import (
     dismiss_job,
     finish_job_if_done,
     job_counts,
-    register_sequence,
     set_job_status,
     set_unit_status,
 )
+from db.sequences import register_sequence
 from db.store import store_building_result
 from tests.integration.conftest import TEST_SRID
 from tests.integration.test_db_store_export import make_result

@@ -28,9 +28,9 @@ from sqlalchemy.orm import Session
 
 from db.citygml.reader import read_model
 from db.importer import import_citygml
-from db.jobs import register_sequence
 from db.results_import import import_results
 from db.sequence_package import read_manifest
+from db.sequences import register_sequence
 from db.synth_files import write_synthetic_package
 from tests.integration.test_results_db import job_rows
 from workers.celery_app import QUEUE, app
