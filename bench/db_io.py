@@ -18,8 +18,9 @@ runs each phase in its own subprocess so that peak RSS figures are the phase's o
 Bars (issue 13): import >= 2,000 buildings/s wall time including start-up, peak RSS of the
 importer and of its reader process < 300 MB each.
 
-Usage: `python bench/db_io.py [--copies 87] [--file PATH] [--checks fast|full|none] [--keep]`
-prints JSON.
+Usage: `python bench/db_io.py [--copies 87] [--file PATH] [--checks fast|full|none] [--db NAME]
+[--keep]` prints JSON (`--db`: the bench database's name, default `citytherm_bench`; it is dropped
+and created afresh, so give one of your own on a shared server).
 """
 
 from __future__ import annotations
@@ -176,6 +177,7 @@ def main() -> None:
     ap.add_argument("--file", type=Path, help="use this CityGML file instead of building one")
     ap.add_argument("--checks", default="fast", choices=("fast", "full", "none"))
     ap.add_argument("--keep", action="store_true", help="keep the bench database and files")
+    ap.add_argument("--db", default=BENCH_DB, help="bench database name (dropped and created afresh)")
     ap.add_argument("--phase", choices=("import", "export"), help=argparse.SUPPRESS)
     ap.add_argument("--url", help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, help=argparse.SUPPRESS)
@@ -195,7 +197,7 @@ def main() -> None:
 
         big = make_replicated_model(NRW, Path(tmp.name) / "nrw-replicated.gml", args.copies)
     build_s = time.perf_counter() - t0
-    url = _fresh_database(PG, BENCH_DB)
+    url = _fresh_database(PG, args.db)
     try:
         load0 = round(os.getloadavg()[0], 2)
         imp = _run_phase("--phase", "import", "--url", url, "--file", str(big), "--checks", args.checks)
@@ -206,7 +208,7 @@ def main() -> None:
         exp = _run_phase("--phase", "export", "--url", url, "--out", str(Path(tmp.name) / "export"))
     finally:
         if not args.keep:
-            _drop_database(PG, BENCH_DB)
+            _drop_database(PG, args.db)
     result = {
         "input": {
             "file_mb": round(big.stat().st_size / 1e6, 1),
@@ -225,7 +227,7 @@ def main() -> None:
     }
     print(json.dumps(result, indent=1))
     if args.keep:
-        print(f"kept: {big} and database {BENCH_DB}", file=sys.stderr)
+        print(f"kept: {big} and database {args.db}", file=sys.stderr)
         tmp.cleanup = lambda: None  # type: ignore[method-assign]
 
 

@@ -13,7 +13,6 @@ import hashlib
 from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
 
-import cv2
 import numpy as np
 from sqlalchemy import Connection, text
 
@@ -51,6 +50,8 @@ def store_appearance_images(conn: Connection, appearance_ids: Sequence[int], fol
         ),
         {"a": list(appearance_ids)},
     ).all()
+    import cv2  # here, not at module level: most imports have no texture images to check
+
     rows = []
     for aid, uri in wanted:
         path = _inside(folder, uri)

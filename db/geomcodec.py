@@ -106,6 +106,45 @@ def _u32_hex(n: int) -> str:
     return struct.pack("<I", n).hex()
 
 
+def _polygons_ewkb(
+    cat: np.ndarray,
+    counts: Sequence[int],
+    lengths: np.ndarray,
+    starts: np.ndarray,
+    closed: np.ndarray,
+    srid: int,
+) -> tuple[list[str | None], list[list[bool]]]:
+    """Hex EWKB `POLYGON Z` per polygon from the concatenated closed rings `cat` `(V, 3)`
+    (`counts`: rings per polygon; `lengths`, `starts`: vertices and first row of each ring), None
+    for a polygon with a ring of fewer than 4 vertices; and the per-ring `closed` flags, grouped
+    by polygon."""
+    hexcat = np.ascontiguousarray(cat, dtype="<f8").tobytes().hex()
+    header = _header(_POLYGON, srid).hex()
+    closed_l, len_l, start_l = closed.tolist(), lengths.tolist(), starts.tolist()
+    ewkb: list[str | None] = []
+    closed_flags: list[list[bool]] = []
+    r = 0
+    head1 = header + _u32_hex(1)
+    for cnt in counts:
+        if cnt == 1:  # the usual polygon: one ring
+            n, s0 = len_l[r], start_l[r]
+            ewkb.append(head1 + _u32_hex(n) + hexcat[48 * s0 : 48 * (s0 + n)] if n >= 4 else None)
+            closed_flags.append(closed_l[r : r + 1])
+            r += 1
+            continue
+        ok = True
+        pieces = [header, _u32_hex(cnt)]
+        for j in range(r, r + cnt):
+            n = len_l[j]
+            ok = ok and n >= 4
+            pieces.append(_u32_hex(n))
+            pieces.append(hexcat[48 * start_l[j] : 48 * (start_l[j] + n)])
+        ewkb.append("".join(pieces) if ok else None)
+        closed_flags.append(closed_l[r : r + cnt])
+        r += cnt
+    return ewkb, closed_flags
+
+
 def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
     """Encode a batch of polygons and compute their planes (Newell's method, vectorised)."""
     n_poly = len(polygons)
@@ -133,23 +172,7 @@ def encode_polygons(polygons: Sequence[Polygon], srid: int) -> EncodedPolygons:
         cat = np.concatenate(parts, axis=0).astype(np.float64, copy=False)
         lengths = np.array([len(c) for c in parts], dtype=np.int64)
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
-    hexcat = np.ascontiguousarray(cat, dtype="<f8").tobytes().hex()
-    header = _header(_POLYGON, srid).hex()
-    closed_l, len_l, start_l = closed.tolist(), lengths.tolist(), starts.tolist()
-    ewkb: list[str | None] = []
-    closed_flags: list[list[bool]] = []
-    r = 0
-    for cnt in counts:
-        ok = True
-        pieces = [header, _u32_hex(cnt)]
-        for j in range(r, r + cnt):
-            n = len_l[j]
-            ok = ok and n >= 4
-            pieces.append(_u32_hex(n))
-            pieces.append(hexcat[48 * start_l[j] : 48 * (start_l[j] + n)])
-        ewkb.append("".join(pieces) if ok else None)
-        closed_flags.append(closed_l[r : r + cnt])
-        r += cnt
+    ewkb, closed_flags = _polygons_ewkb(cat, counts, lengths, starts, closed, srid)
     normal = np.full((n_poly, 3), np.nan)
     offset = np.full(n_poly, np.nan)
     area = np.full(n_poly, np.nan)
@@ -258,30 +281,45 @@ def encode_footprints(
         return []
     grounds = [_ground(b, normals) for b in buildings]
     shapes = _shapes_2d([p for g in grounds for p in g])
-    geoms: list[shapely.Geometry | None] = []
+    merged: list[shapely.Geometry | None] = []
     k = 0
     for b, g in zip(buildings, grounds, strict=True):
         mine = [s for s in shapes[k : k + len(g)] if s is not None]
         k += len(g)
         if len(mine) == 1:
-            geom = mine[0]
+            merged.append(mine[0])
         elif mine:
-            geom = shapely.union_all(mine)
+            merged.append(shapely.union_all(mine))
         else:
             rings = [r.coords[:, :2] for p in b.iter_polygons() for r in p.rings]
-            if not rings:
-                geoms.append(None)
-                continue
-            geom = shapely.MultiPoint(np.concatenate(rings, axis=0)).convex_hull
-        if not geom.is_valid:
-            geom = shapely.make_valid(geom)
-        if geom.geom_type == "Polygon":
-            geoms.append(shapely.MultiPolygon([geom]) if geom.area > 0 else None)
-            continue
-        parts = [x for x in shapely.get_parts(geom) if x.geom_type == "Polygon" and x.area > 0]
-        geoms.append(shapely.MultiPolygon(parts) if parts else None)
-    arr = shapely.set_srid(np.array(geoms, dtype=object), srid)
-    out = shapely.to_wkb(arr, hex=True, include_srid=True, output_dimension=2)
+            merged.append(shapely.MultiPoint(np.concatenate(rings, axis=0)).convex_hull if rings else None)
+    return _multipolygon_wkb(merged, srid)
+
+
+def _multipolygon_wkb(merged: Sequence[shapely.Geometry | None], srid: int) -> list[str | None]:
+    """Each geometry made valid and reduced to its polygons of positive area -> hex EWKB 2D
+    `MULTIPOLYGON` with `srid`; None where nothing is left. Vectorised for the usual case (one
+    valid polygon)."""
+    arr = np.array(merged, dtype=object)
+    have = np.flatnonzero(np.array([g is not None for g in merged], dtype=bool))
+    geoms: list[shapely.Geometry | None] = [None] * len(merged)
+    if len(have):
+        sub = arr[have]
+        bad = ~shapely.is_valid(sub)
+        if bad.any():
+            sub[bad] = shapely.make_valid(sub[bad])
+        is_poly = shapely.get_type_id(sub) == shapely.GeometryType.POLYGON
+        area_ok = shapely.area(sub) > 0
+        simple = np.flatnonzero(is_poly & area_ok)
+        if len(simple):
+            multi = shapely.multipolygons(sub[simple], indices=np.arange(len(simple)))
+            for j, g in zip(have[simple].tolist(), multi, strict=True):
+                geoms[j] = g
+        for j in np.flatnonzero(~is_poly).tolist():
+            parts = [x for x in shapely.get_parts(sub[j]) if x.geom_type == "Polygon" and x.area > 0]
+            geoms[have[j]] = shapely.MultiPolygon(parts) if parts else None
+    out_arr = shapely.set_srid(np.array(geoms, dtype=object), srid)
+    out = shapely.to_wkb(out_arr, hex=True, include_srid=True, output_dimension=2)
     return [None if g is None else str(o) for g, o in zip(geoms, out, strict=True)]
 
 

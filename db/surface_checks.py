@@ -21,11 +21,6 @@ from workers.pipeline.geometry.citymodel import Building, Polygon
 __all__ = ["fast_checks", "full_checks", "jsonable", "surface_checks"]
 
 
-def _num(v: float) -> str:
-    """A Python float -> JSON number (null for NaN/inf)."""
-    return repr(v) if v == v and v not in (float("inf"), float("-inf")) else "null"
-
-
 def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
     """The reader family's full per-polygon checks (`db.citygml.checks.check_building`: plane,
     planarity, area, vertices, self-intersection, unclosed rings, outward wall normals), keyed by
@@ -51,6 +46,19 @@ def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
     return out
 
 
+def _nums(values: np.ndarray) -> list[str]:
+    """Floats `(P,)` -> JSON numbers (shortest round-trip decimals; null for NaN and inf)."""
+    finite = np.isfinite(values).tolist()
+    return [repr(v) if ok else "null" for v, ok in zip(values.tolist(), finite, strict=True)]
+
+
+#: problem names of the vectorised checks, by bit (1: too few vertices, 2: zero area, 4: non-planar)
+_PROBLEMS = [
+    [name for bit, name in ((1, '"too_few_vertices"'), (2, '"zero_area"'), (4, '"non_planar"')) if code & bit]
+    for code in range(8)
+]
+
+
 def fast_checks(enc: EncodedPolygons, polygons: Sequence[Polygon]) -> list[str]:
     """Vectorised checks from the batch encoding, JSON text per polygon: vertices, planarity,
     area, unclosed rings (the tolerances of `db.citygml.checks.CheckOptions`; no self-intersection
@@ -60,25 +68,21 @@ def fast_checks(enc: EncodedPolygons, polygons: Sequence[Polygon]) -> list[str]:
         few = enc.min_vertices < 3
         zero = ~np.isfinite(enc.area) | (enc.area < opt.min_area_m2)
         nonplanar = np.isfinite(enc.planarity) & (enc.planarity > opt.planarity_tolerance_m)
+    codes = (few.astype(np.int64) | (zero.astype(np.int64) << 1) | (nonplanar.astype(np.int64) << 2)).tolist()
+    joined = [", ".join(names) for names in _PROBLEMS]
+    verts, plan, area = enc.min_vertices.tolist(), _nums(enc.planarity), _nums(enc.area)
     out = []
-    verts, plan, area = enc.min_vertices.tolist(), enc.planarity.tolist(), enc.area.tolist()
-    for k, p in enumerate(polygons):
-        problems = []
-        if few[k]:
-            problems.append('"too_few_vertices"')
-        if zero[k]:
-            problems.append('"zero_area"')
-        if nonplanar[k]:
-            problems.append('"non_planar"')
-        closed = enc.ring_closed[k]
+    for k, closed in enumerate(enc.ring_closed):
         unclosed = "[]"
+        problems = joined[codes[k]]
         if not all(closed):
+            p = polygons[k]
             unclosed = json.dumps([r.id for r, c in zip(p.rings, closed, strict=True) if not c])
-            problems.append('"unclosed_ring"')
+            problems = ", ".join([*_PROBLEMS[codes[k]], '"unclosed_ring"'])
         out.append(
             f'{{"level": "fast", "vertices": {verts[k]}, '
-            f'"planarity_m": {_num(plan[k])}, "area_m2": {_num(area[k])}, '
-            f'"unclosed_rings": {unclosed}, "problems": [{", ".join(problems)}]}}'
+            f'"planarity_m": {plan[k]}, "area_m2": {area[k]}, '
+            f'"unclosed_rings": {unclosed}, "problems": [{problems}]}}'
         )
     return out
 

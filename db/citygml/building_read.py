@@ -29,6 +29,7 @@ import numpy as np
 from lxml import etree
 
 from db.citygml.appearance_read import AppearanceDraft, finish_appearance, parse_appearance
+from db.citygml.gml_coords import ring_coords
 from db.citygml.names import (
     BOUNDARY_CLASSES,
     CORE_ATTRIBUTES,
@@ -109,7 +110,6 @@ class _Draft:
 
 _MEMBER_TAGS = frozenset({f"{{{GML_NS}}}surfaceMember", f"{{{GML32_NS}}}surfaceMember"})
 _POLYGON_TAGS = frozenset({f"{{{GML_NS}}}Polygon", f"{{{GML32_NS}}}Polygon"})
-_POSLIST_TAGS = frozenset({f"{{{GML_NS}}}posList", f"{{{GML32_NS}}}posList"})
 _LINEAR_RING_TAGS = frozenset({f"{{{GML_NS}}}LinearRing", f"{{{GML32_NS}}}LinearRing"})
 #: Ring property tags -> True for the exterior, False for an interior (GML 3 and GML 2 names).
 _RING_ROLES: dict[str, bool] = {
@@ -143,67 +143,6 @@ def _is_gml(tag: str) -> bool:
     return tag.startswith("{http://www.opengis.net/gml")
 
 
-def _coords(values: np.ndarray, dim: int, el: etree._Element) -> np.ndarray:
-    """Flat coordinate values -> `(N, 3)` float64 (2D input gets z = 0)."""
-    if dim not in (2, 3) or len(values) % dim:
-        raise CityGMLError(
-            f"<{local(el.tag)}>: {len(values)} values do not form points of dimension {dim}",
-            line=el.sourceline,
-        )
-    pts = values.reshape(-1, dim)
-    if dim == 2:
-        pts = np.column_stack([pts, np.zeros(len(pts))])
-    return pts
-
-
-def _numbers(text: str | None, el: etree._Element) -> np.ndarray:
-    try:
-        return np.array((text or "").split(), dtype=np.float64)
-    except ValueError as exc:
-        raise CityGMLError(f"<{local(el.tag)}>: not a list of numbers", line=el.sourceline) from exc
-
-
-def _ring_coords(ring: etree._Element, dim: int) -> np.ndarray:
-    """`gml:LinearRing` -> `(N, 3)` float64 from `posList`, `pos` or `coordinates`."""
-    if len(ring) == 1 and ring[0].tag in _POSLIST_TAGS:  # fast path: one posList
-        pl = ring[0]
-        d = pl.get("srsDimension") or ring.get("srsDimension")
-        if (int(d) if d else dim) == 3:
-            try:
-                values = np.array((pl.text or "").split(), dtype=np.float64)
-            except ValueError:
-                values = _numbers(pl.text, pl)
-            if len(values) % 3 == 0:
-                return values.reshape(-1, 3)
-    d = ring.get("srsDimension")
-    dim = int(d) if d else dim
-    parts: list[np.ndarray] = []
-    for ch in ring:
-        ln = local(ch.tag)
-        if ln == "posList":
-            d = ch.get("srsDimension") or ch.get("dimension")
-            return _coords(_numbers(ch.text, ch), int(d) if d else dim, ch)
-        if ln == "pos":
-            d = ch.get("srsDimension") or ch.get("dimension")
-            vals = _numbers(ch.text, ch)
-            parts.append(_coords(vals, int(d) if d else len(vals) if len(vals) in (2, 3) else dim, ch))
-        elif ln == "coordinates":
-            cs, ts, dec = ch.get("cs", ","), ch.get("ts", " "), ch.get("decimal", ".")
-            text = ch.text or ""
-            if dec != ".":
-                text = text.replace(dec, ".")
-            tuples = [t for t in (text.split() if ts.isspace() else text.split(ts)) if t.strip()]
-            rows = [_numbers(t.replace(cs, " "), ch) for t in tuples]
-            if rows:
-                width = {len(r) for r in rows}
-                if len(width) != 1:
-                    raise CityGMLError("<coordinates>: tuples of different dimension", line=ch.sourceline)
-                parts.append(_coords(np.concatenate(rows), width.pop(), ch))
-    if not parts:
-        raise CityGMLError(f"<{local(ring.tag)}> without coordinates", line=ring.sourceline)
-    return np.concatenate(parts, axis=0)
-
-
 class _BuildingReader:
     """Reads one top-level building element (and its parts) into a `Building`."""
 
@@ -216,35 +155,39 @@ class _BuildingReader:
 
     # ---- geometry -------------------------------------------------------------------------
     def _polygon(self, el: etree._Element, d: _Draft, ctx: tuple, dim: int) -> None:
+        """Record a `gml:Polygon` (or patch) `el`: its rings `(N, 3)` (exterior first; reversed
+        when `ctx`'s sign is -1), ids and context (`_geometry`); `dim`: the srsDimension in force."""
         cls, sid, lod, in_solid, coll, sign = ctx
+        id_attr, scope = self.id_attr, self.scope
         rings: list[tuple[str | None, np.ndarray]] = []
         interiors: list[tuple[str | None, np.ndarray]] = []
         for ch in el:
-            ln = _RING_ROLES.get(ch.tag)
-            if ln is None:
+            role = _RING_ROLES.get(ch.tag)
+            if role is None:
                 continue
             for ring in ch:
-                if ring.tag not in _LINEAR_RING_TAGS:
-                    if isinstance(ring.tag, str):
-                        raise CityGMLError(f"unsupported ring type <{local(ring.tag)}>", line=ring.sourceline)
+                tag = ring.tag
+                if tag not in _LINEAR_RING_TAGS:
+                    if isinstance(tag, str):
+                        raise CityGMLError(f"unsupported ring type <{local(tag)}>", line=ring.sourceline)
                     continue
-                coords = _ring_coords(ring, dim)
+                coords = ring_coords(ring, dim)
                 if sign < 0:
                     coords = coords[::-1].copy()
-                rid = get_id(ring, self.id_attr)
+                rid = get_id(ring, id_attr)
                 if rid:
-                    self.scope.ids.add(rid)
-                (rings if ln else interiors).append((rid, coords))
+                    scope.ids.add(rid)
+                (rings if role else interiors).append((rid, coords))
         if len(rings) != 1:
             raise CityGMLError(f"<{local(el.tag)}> needs exactly one exterior ring", line=el.sourceline)
-        pid = get_id(el, self.id_attr)
-        rec = _PolyRec(pid, rings + interiors, cls, lod, sid, in_solid, coll)
+        pid = get_id(el, id_attr)
+        rec = _PolyRec(pid, rings + interiors if interiors else rings, cls, lod, sid, in_solid, coll)
         d.polys.append(rec)
         if pid:
-            self.scope.ids.add(pid)
-            self.scope.polys[pid] = rec
+            scope.ids.add(pid)
+            scope.polys[pid] = rec
         if coll:
-            self.scope.collections.setdefault(coll, []).append(rec)
+            scope.collections.setdefault(coll, []).append(rec)
 
     def _geometry(self, el: etree._Element, d: _Draft, ctx: tuple, dim: int) -> None:
         """Walk a geometry subtree; `ctx` = (class, surface id, lod, in_solid, collection id, sign)."""
@@ -283,9 +226,10 @@ class _BuildingReader:
                     self.scope.refs.append((ref_id(href), in_solid, sign, ch.sourceline))
                     continue
                 for g in ch:
-                    if g.tag in _POLYGON_TAGS and g.get("srsName") is None and g.get("srsDimension") is None:
+                    gtag = g.tag
+                    if gtag in _POLYGON_TAGS and g.get("srsName") is None and g.get("srsDimension") is None:
                         self._polygon(g, d, ctx, dim)
-                    elif isinstance(g.tag, str):
+                    elif isinstance(gtag, str):
                         self._geometry(g, d, ctx, dim)
             elif isinstance(tag, str):
                 self._geometry(ch, d, ctx, dim)
