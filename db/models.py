@@ -431,6 +431,12 @@ class SurfaceThermal(Base):
     #: the statistics as produced, in `unit`.
     temperature: Mapped[dict[str, Any]] = mapped_column(JSONB, default=dict)
     unit: Mapped[str | None] = mapped_column(Text)
+    #: texels per metre of the surface's grid, best local resolution of its observations (m/px),
+    #: mean observations per fused texel, why a surface the frames see got no texel (0009).
+    resolution_px_per_m: Mapped[float | None] = mapped_column(Double)
+    best_resolution_m: Mapped[float | None] = mapped_column(Double)
+    mean_observations: Mapped[float | None] = mapped_column(Double)
+    reason: Mapped[str | None] = mapped_column(Text)
 
 
 class ThermalAnomaly(Base):

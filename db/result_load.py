@@ -83,6 +83,10 @@ def load_building_result(
             mean_resolution_m=_nan(r["resolution_m"]),
             mean_view_angle_deg=_nan(r["view_angle_deg"]),
             temperature={k: _nan(v) for k, v in (r["temperature"] or {}).items()},
+            resolution_px_per_m=_nan(r["resolution_px_per_m"]),
+            best_resolution_m=_nan(r["best_resolution_m"]),
+            mean_observations=_nan(r["mean_observations"]),
+            reason=r["reason"] or "",
         )
         for r in conn.execute(
             text(

@@ -75,6 +75,10 @@ THERMAL_COLUMNS = (
     "p95_k",
     "temperature",
     "unit",
+    "resolution_px_per_m",
+    "best_resolution_m",
+    "mean_observations",
+    "reason",
 )
 POSE_COLUMNS = (
     "job_id",
@@ -272,6 +276,10 @@ def _write(
                 *(k[key] for key in _STAT_KEYS),
                 Jsonb({key: _f(v) for key, v in t.items()}),
                 rad.unit,
+                _f(s.resolution_px_per_m),
+                _f(s.best_resolution_m),
+                _f(s.mean_observations),
+                s.reason or None,
             )
         )
     copy_rows(conn, "surface_thermal", THERMAL_COLUMNS, th_rows)

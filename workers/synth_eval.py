@@ -9,12 +9,13 @@ were refined, the refined poses' errors against the true poses.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from db.results_folder.read import iter_surface_textures
+from db.results_folder.read import iter_surface_textures, surface_resolutions
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.synth import SynthResult
 from workers.pipeline.texture.quality import summarize, surface_errors, truth_raster, visible_texels
@@ -38,13 +39,15 @@ def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
     caster = RayCaster(res.mesh)
     gz = res.truth.ground_z
     opts = TexelOptions(resolution_px_per_m=float(rep["resolution_px_per_m"]))
+    per_surface = surface_resolutions(rep)
     errors = []
     for b in res.buildings:
         if b.id not in processed:
             continue
         for part in b.iter_buildings():
             for poly in part.polygons:
-                grid = texel_grid(poly, part.id, opts)
+                r = per_surface.get(poly.id, opts.resolution_px_per_m)
+                grid = texel_grid(poly, part.id, replace(opts, resolution_px_per_m=r))
                 if grid is None:
                     continue
                 vis = visible_texels(grid, res.manifest.camera, res.truth.poses, caster, ground_z=gz)

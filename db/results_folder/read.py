@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -69,6 +69,18 @@ def texel_options(report: dict) -> TexelOptions:
         raise ResultsReadError(f"report.json: texel options: {exc}") from exc
 
 
+def surface_resolutions(report: dict) -> dict[str, float]:
+    """Texels per metre of each surface whose grid the job laid coarser or finer than the job's
+    resolution (`report.json` surfaces' `resolution_px_per_m`; older reports have none)."""
+    out: dict[str, float] = {}
+    for b in report.get("buildings", []):
+        for s in b.get("surfaces", []):
+            r = s.get("resolution_px_per_m")
+            if isinstance(r, int | float) and np.isfinite(r) and r > 0:
+                out[str(s["id"])] = float(r)
+    return out
+
+
 def iter_surface_textures(
     out_dir: str | Path, radiometry: Radiometry, theme: str | None = None
 ) -> Iterator[SurfaceTextureFile]:
@@ -84,6 +96,7 @@ def iter_surface_textures(
         raise ResultsReadError(f"{out / 'report.json'}: {exc}") from exc
     theme = theme or rep["theme"]
     opts = texel_options(rep)
+    per_surface = surface_resolutions(rep)
     _, buildings = read_model(out / "textured.gml")
     cache: dict[str, np.ndarray] = {}
     for b in buildings:
@@ -101,7 +114,9 @@ def iter_surface_textures(
                     poly = polys.get(target.polygon_id)
                     if poly is None:
                         raise ResultsReadError(f"textured.gml: target #{target.polygon_id} is not a polygon")
-                    grid = texel_grid(poly, owner[poly.id], opts)
+                    r = per_surface.get(poly.id)
+                    own = opts if r is None else replace(opts, resolution_px_per_m=r)
+                    grid = texel_grid(poly, owner[poly.id], own)
                     if grid is None:
                         continue
                     st = target.ring_coords[poly.exterior.id]
@@ -255,6 +270,10 @@ def _surface_stats(entry: dict[str, Any], where: str) -> tuple[SurfaceStats, ...
                     mean_resolution_m=_num(s.get("mean_resolution_m")),
                     mean_view_angle_deg=_num(s.get("mean_view_angle_deg")),
                     temperature={str(key): _num(v) for key, v in _get(s, "temperature", w, dict).items()},
+                    resolution_px_per_m=_num(s.get("resolution_px_per_m")),
+                    best_resolution_m=_num(s.get("best_resolution_m")),
+                    mean_observations=_num(s.get("mean_observations")),
+                    reason=str(s.get("reason", "")),
                 )
             )
         except (TypeError, ValueError) as exc:

@@ -199,6 +199,10 @@ def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
                 "mean_resolution_m": s.mean_resolution_m,
                 "mean_view_angle_deg": s.mean_view_angle_deg,
                 "temperature": dict(s.temperature),
+                "resolution_px_per_m": s.resolution_px_per_m,
+                "best_resolution_m": s.best_resolution_m,
+                "mean_observations": s.mean_observations,
+                **({"reason": s.reason} if s.reason else {}),
             }
             for s in r.surfaces
         ],

@@ -54,6 +54,12 @@ class SurfaceStats:
         mean_view_angle_deg: mean angle between the surface normal and the viewing ray, degrees.
         temperature: statistics of observed texels in the radiometry unit: keys `mean`, `median`,
             `std`, `min`, `max`, `p05`, `p25`, `p75`, `p95` (empty when nothing was observed).
+        resolution_px_per_m: texels per metre of the surface's grid: the job's, or coarser where
+            the frames see the surface only coarsely (`texture.sight.surface_resolution`; NaN:
+            not recorded).
+        best_resolution_m: finest local resolution among the observations of its texels (m/px).
+        mean_observations: mean number of observations a fused texel rests on.
+        reason: why a surface that frames see got no or few texels ("" otherwise).
     """
 
     polygon_id: str
@@ -65,6 +71,10 @@ class SurfaceStats:
     mean_resolution_m: float = float("nan")
     mean_view_angle_deg: float = float("nan")
     temperature: Mapping[str, float] = field(default_factory=dict)
+    resolution_px_per_m: float = float("nan")
+    best_resolution_m: float = float("nan")
+    mean_observations: float = float("nan")
+    reason: str = ""
 
     @property
     def observed_share(self) -> float:

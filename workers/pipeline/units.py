@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -31,6 +31,7 @@ from workers.pipeline.orientation.building import CoregisterOptions, refine_buil
 from workers.pipeline.results import BuildingResult, FramePose, RefinedPose, SurfaceStats
 from workers.pipeline.texture.atlas import AtlasOptions, build_atlas
 from workers.pipeline.texture.fusion import FusionOptions, SurfaceTexels, SurfaceTexture, texture_frame
+from workers.pipeline.texture.sight import surface_resolution, surface_sight
 from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
 from workers.pipeline.texture.visibility import OcclusionScene, VisibilityOptions, buried_texels
 
@@ -173,8 +174,12 @@ def refine_unit(
 _PERCENTILES = {"p05": 5, "p25": 25, "median": 50, "p75": 75, "p95": 95}
 
 
-def surface_stats(grid: TexelGrid, tex: SurfaceTexture, surface_class: str) -> SurfaceStats:
-    """Per-surface statistics of a fused texture (texels inside the polygon only)."""
+def surface_stats(
+    grid: TexelGrid, tex: SurfaceTexture, surface_class: str, resolution_px_per_m: float = float("nan"),
+    reason: str = "",
+) -> SurfaceStats:
+    """Per-surface statistics of a fused texture (texels inside the polygon only); `reason` says
+    why a surface the frames see has no texel observed."""
     m = grid.mask & tex.observed
     vals = tex.value[m].astype(np.float64)
     temp: dict[str, float] = {}
@@ -183,50 +188,74 @@ def surface_stats(grid: TexelGrid, tex: SurfaceTexture, surface_class: str) -> S
         temp["max"] = float(vals.max())
         pct = np.percentile(vals, list(_PERCENTILES.values()))
         temp.update({k: float(v) for k, v in zip(_PERCENTILES, pct, strict=True)})
+    nan = float("nan")
     return SurfaceStats(
         polygon_id=grid.polygon_id,
         building_id=grid.building_id,
         surface_class=surface_class,
         texels_total=grid.n_texels,
         texels_observed=int(m.sum()),
-        frames_used=tuple(int(f) for f in np.unique(tex.frame[m])),
-        mean_resolution_m=float(tex.resolution[m].mean()) if len(vals) else float("nan"),
-        mean_view_angle_deg=float(tex.view_angle[m].mean()) if len(vals) else float("nan"),
+        frames_used=tuple(int(f) for f in tex.frames_used(m)),
+        mean_resolution_m=float(tex.resolution[m].mean()) if len(vals) else nan,
+        mean_view_angle_deg=float(tex.view_angle[m].mean()) if len(vals) else nan,
         temperature=temp,
+        resolution_px_per_m=float(resolution_px_per_m),
+        best_resolution_m=float(tex.resolution[m].min()) if len(vals) else nan,
+        mean_observations=float(tex.count[m].mean()) if len(vals) else nan,
+        reason="" if len(vals) else reason,
     )
 
 
 @dataclass(eq=False)
 class UnitTextures:
-    """The fused textures of a unit's surfaces before packing (for tests and benches)."""
+    """The fused textures of a unit's surfaces before packing (for tests and benches).
+
+    `resolutions` (texels per metre of each grid) and `reasons` (why a polygon the frames see got
+    no texel, by polygon id) go into the surface statistics."""
 
     polygons: list[Polygon]
     grids: list[TexelGrid]
     textures: list[SurfaceTexture]
     timings_s: dict[str, float]
     empty: list[SurfaceStats] = field(default_factory=list)
+    resolutions: list[float] = field(default_factory=list)
+    reasons: dict[str, str] = field(default_factory=dict)
 
 
 def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCaster | None) -> UnitTextures:
-    """Texel grids for every polygon of the unit's building and the textures fused from its frames."""
+    """Texel grids for every polygon of the unit's building (at the resolution the frames support,
+    `texture.sight`) and the textures fused from its frames."""
     opts = unit.options
     t0 = time.perf_counter()
+    owned = [(part.id, poly) for part in unit.building.iter_buildings() for poly in part.polygons]
+    sights = surface_sight([p for _, p in owned], unit.camera, [poses[f] for f in unit.frames], raycaster,
+                           opts.visibility)  # fmt: skip
     polygons: list[Polygon] = []
     grids: list[TexelGrid] = []
+    resolutions: list[float] = []
     empty: list[SurfaceStats] = []
-    for part in unit.building.iter_buildings():
-        for poly in part.polygons:
-            grid = texel_grid(poly, part.id, opts.texel)
-            if grid is None:
-                empty.append(SurfaceStats(poly.id, part.id, poly.surface_class, 0, 0))
-                continue
-            polygons.append(poly)
-            grids.append(grid)
+    reasons: dict[str, str] = {}
+    for (part_id, poly), sight in zip(owned, sights, strict=True):
+        r = opts.texel.resolution_px_per_m
+        if opts.texel.follow_frames:
+            r = surface_resolution(r, sight.best_resolution_m, opts.texel.oversample)
+        grid = texel_grid(poly, part_id, replace(opts.texel, resolution_px_per_m=r))
+        reason = sight.reason_unseen(opts.visibility.max_view_angle_deg)
+        if sight.seen:
+            reason = "no texel passed the clean-pixel test (too small or thin for the sampling footprint)"
+        if grid is None:
+            why = "polygon degenerate or smaller than min_area_m2" if sight.seen else reason
+            empty.append(SurfaceStats(poly.id, part_id, poly.surface_class, 0, 0, reason=why))
+            continue
+        polygons.append(poly)
+        grids.append(grid)
+        resolutions.append(r)
+        reasons[poly.id] = reason
     surfaces = [SurfaceTexels.of(g) for g in grids]
     if raycaster is not None:  # texels covered by a touching building (shared walls) are never seen
         surfaces = [s.without(buried_texels(raycaster, s.points, s.grid.normal)) for s in surfaces]
     scene = OcclusionScene(raycaster, unit.camera, opts.visibility) if raycaster is not None else None
-    textures = [SurfaceTexture.empty(g.shape) for g in grids]
+    textures = [SurfaceTexture.empty(g.shape, opts.fusion.fused) for g in grids]
     t_grid = time.perf_counter() - t0
     t_load = 0.0
     t_tex = 0.0
@@ -240,7 +269,8 @@ def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCa
         t_load += t2 - t1
         t_tex += time.perf_counter() - t2
     timings = {"grid": t_grid, "decode": t_load, "texture": t_tex}
-    return UnitTextures(polygons=polygons, grids=grids, textures=textures, timings_s=timings, empty=empty)
+    return UnitTextures(polygons=polygons, grids=grids, textures=textures, timings_s=timings, empty=empty,
+                        resolutions=resolutions, reasons=reasons)  # fmt: skip
 
 
 def unit_raycaster(unit: BuildingUnit) -> RayCaster:
@@ -271,8 +301,8 @@ def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) ->
     )
     t_atlas = time.perf_counter() - t0
     by_id = {
-        g.polygon_id: surface_stats(g, t, p.surface_class)
-        for p, g, t in zip(tex.polygons, tex.grids, tex.textures, strict=True)
+        g.polygon_id: surface_stats(g, t, p.surface_class, r, tex.reasons.get(p.id, ""))
+        for p, g, t, r in zip(tex.polygons, tex.grids, tex.textures, tex.resolutions, strict=True)
     }
     by_id.update({s.polygon_id: s for s in tex.empty})
     stats = tuple(by_id[p.id] for p in unit.building.iter_polygons() if p.id in by_id)

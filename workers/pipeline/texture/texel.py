@@ -3,7 +3,8 @@
 In: a `citymodel.Polygon` (model CRS, metres) and a resolution in texels per metre.
 Out: a `TexelGrid` — the polygon's local 2D frame (`s` right, `t` up, as
 `geometry.surface_axes`), the texel size, the raster size, the 3D centre of every texel and a
-mask of the texels whose centre lies inside the polygon (holes excluded).
+mask of the texels whose centre lies inside the polygon (holes excluded); a polygon too thin to
+hold a texel centre gets the texels it overlaps.
 
 Raster convention (the one of texture images): row `i` counts from the top (largest `t`),
 column `j` from the left (smallest `s`). The centre of texel `(i, j)` lies at plane coordinates
@@ -36,11 +37,18 @@ class TexelOptions:
         max_side: largest raster side in texels; a larger surface gets coarser texels so that it
             still fits (its texture must fit an atlas tile of 4096 with a gutter).
         min_area_m2: polygons smaller than this get no grid (slivers).
+        follow_frames: lay a surface that the frames see only coarsely with coarser texels
+            (`texture.sight.surface_resolution`): it gets a texture at the resolution the frames
+            support instead of none (a flight at the default resolution).
+        oversample: with `follow_frames`, texels may be this many times finer than the best
+            pixel footprint on the surface (bilinear up-sampling), no finer.
     """
 
     resolution_px_per_m: float = 10.0
     max_side: int = 4080
     min_area_m2: float = 0.01
+    follow_frames: bool = True
+    oversample: float = 1.5
 
     def __post_init__(self) -> None:
         if not (self.resolution_px_per_m > 0 and math.isfinite(self.resolution_px_per_m)):
@@ -138,6 +146,10 @@ def texel_grid(polygon: Polygon, building_id: str, options: TexelOptions) -> Tex
     S, T = np.meshgrid(cs, ct)
     shapely.prepare(shape)
     mask = shapely.contains_xy(shape, S.ravel(), T.ravel()).reshape(H, W)
+    if not mask.any():  # a thin polygon (a dormer cheek, a roof strip) holds no texel centre
+        h = 0.5 * size
+        boxes = shapely.box(S.ravel() - h, T.ravel() - h, S.ravel() + h, T.ravel() + h)
+        mask = shapely.intersects(shape, boxes).reshape(H, W)
     corner = origin + s_min * s_axis + t_max * t_axis
     return TexelGrid(
         polygon_id=polygon.id,

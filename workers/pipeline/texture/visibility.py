@@ -36,7 +36,11 @@ class VisibilityOptions:
         margin_px: texels projecting closer than this to the frame border are not used.
         min_depth_m: texels closer to the camera than this (along the optical axis) are not used.
         max_distance_m: texels farther than this from the projection centre are not used.
-        max_view_angle_deg: largest angle between the surface normal and the ray to the camera.
+        max_view_angle_deg: largest angle between the surface normal and the ray to the camera
+            (the grazing limit). Oblique observations lose out to better ones in the fusion
+            (ranked by local resolution, which grows as 1/cos of the angle); a surface seen only
+            obliquely (a flat roof from the street) still gets a texture, its mean viewing angle
+            in the statistics tells the user (real emissivity falls beyond ~60°).
         max_texel_ratio: an observation whose local resolution (metres on the surface per pixel)
             exceeds this many texel sizes is not used: it resolves nothing at the texel scale
             (inf: no limit).
@@ -60,7 +64,7 @@ class VisibilityOptions:
     margin_px: float = 2.0
     min_depth_m: float = 0.5
     max_distance_m: float = 500.0
-    max_view_angle_deg: float = 75.0
+    max_view_angle_deg: float = 80.0
     max_texel_ratio: float = 3.0
     occlusion_tolerance_m: float = 0.05
     depth_tolerance_m: float = 0.3
