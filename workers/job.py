@@ -84,6 +84,9 @@ class RunOptions:
         workers: processes for the building units in one process (`citytherm run`; 1: in this
             process).
         display: also write the 8-bit colour-mapped `<theme>-display` appearance.
+        split_half: after the units, texture every building's even and odd frames separately
+            and report how the two halves agree (`workers.split_half`; `report.json`
+            `split_half`); the job's outputs stay the same. `citytherm run` only.
     """
 
     unit: UnitOptions = field(default_factory=UnitOptions)
@@ -93,6 +96,7 @@ class RunOptions:
     buildings: tuple[str, ...] | None = None
     workers: int = 1
     display: bool = True
+    split_half: bool = False
 
     @classmethod
     def build(
@@ -446,11 +450,13 @@ def finish(
     *,
     package: str | Path | None = None,
     write_time_offset_s: float = 0.0,
+    split_half: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The finish stage: the results folder `out_dir` (tiles already written are kept: results
     whose tiles have empty pixels; `db.results_folder.write.write_results_folder`) with the
     job's figures in `report.json` (`package`: the package as the user named it, default its
-    folder). `timings` gets the `write` stage time. Returns the `report.json` document."""
+    folder; `split_half`: the split-half check's block, `workers.split_half`). `timings` gets the
+    `write` stage time. Returns the `report.json` document."""
     t0 = time.perf_counter()
     frames_of = {u.building.id: len(u.frames) for u in planned.units}
     mounting, calibration = calibration_documents(
@@ -469,6 +475,8 @@ def finish(
         "warnings": [planned.warning] if planned.warning else [],
         "options": options.to_dict(),
     }
+    if split_half is not None:
+        job["split_half"] = dict(split_half)
     return write_results_folder(
         out_dir,
         buildings=ingested.buildings,

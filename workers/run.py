@@ -40,6 +40,7 @@ from workers.job import (
 )
 from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.units import BuildingUnit, Refiner
+from workers.split_half import split_half_report
 
 
 @dataclass
@@ -58,6 +59,7 @@ class RunSummary:
     warning: str | None = None
     calibration: dict[str, Any] | None = None
     orientation: dict[str, Any] | None = None
+    split_half: dict[str, Any] | None = None  # report.json's `split_half` block (--split-half)
 
     @property
     def texels_observed(self) -> int:
@@ -191,8 +193,14 @@ def run_job(
             progress("units", k + 1, len(planned.units))
         timings["units"] = time.perf_counter() - t0 - tiles_written
 
+        split = None  # --split-half: even vs odd frames per building, into report.json only
+        if options.split_half:
+            t0 = time.perf_counter()
+            split = split_half_report(planned.units, results, workers=options.workers, progress=progress)
+            timings["split_half"] = time.perf_counter() - t0
+
         report = finish(out, ingested, calibrated, oriented, planned, results, failures, options, timings,
-                        progress, package=package, write_time_offset_s=tiles_written)
+                        progress, package=package, write_time_offset_s=tiles_written, split_half=split)
     return RunSummary(
         out_dir=out,
         n_frames=len(ingested.manifest.frames),
@@ -205,4 +213,5 @@ def run_job(
         warning=planned.warning,
         calibration=report["calibration"],
         orientation=oriented.report,
+        split_half=split,
     )
