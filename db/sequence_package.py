@@ -21,6 +21,7 @@ import json
 import shutil
 import tempfile
 import weakref
+from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -110,6 +111,20 @@ def physical_from_raw(arr: np.ndarray, radiometry: Radiometry) -> np.ndarray:
     return out
 
 
+#: bytes of decoded frames kept per process (`PackageFrames.raw`)
+FRAME_CACHE_BYTES = 256 * 1024**2
+_FRAMES: OrderedDict[tuple[str, int, int], np.ndarray] = OrderedDict()
+
+
+def _remember(key: tuple[str, int, int], arr: np.ndarray) -> None:
+    """Keep a decoded frame, dropping the least recently used beyond `FRAME_CACHE_BYTES`."""
+    _FRAMES[key] = arr
+    total = sum(a.nbytes for a in _FRAMES.values())
+    while total > FRAME_CACHE_BYTES and len(_FRAMES) > 1:
+        _, old = _FRAMES.popitem(last=False)
+        total -= old.nbytes
+
+
 @dataclass(frozen=True)
 class PackageFrames:
     """Picklable `FrameSource` over a package folder: `load(i) -> (H, W) float32` physical values.
@@ -131,15 +146,31 @@ class PackageFrames:
         return len(self.files)
 
     def raw(self, index: int) -> np.ndarray:
-        """Frame `index` as stored (uint8 / uint16 / float), shape `(H, W)`, size checked."""
+        """Frame `index` as stored (uint8 / uint16 / float), shape `(H, W)`, size checked; read-only.
+
+        Decoded frames are kept per process (`FRAME_CACHE_BYTES`, least recently used first out,
+        keyed by file, size and modification time): the building units of a flight read the same
+        frames dozens of times, and decoding is most of a frame's cost."""
         name = self.files[index]
-        arr = read_frame_raw(Path(self.root) / name, name)
+        path = Path(self.root) / name
+        try:
+            st = path.stat()
+            key: tuple[str, int, int] | None = (str(path), st.st_size, st.st_mtime_ns)
+        except OSError:
+            key = None  # read_frame_raw names the missing file
+        if key is not None and (hit := _FRAMES.get(key)) is not None:
+            _FRAMES.move_to_end(key)
+            return hit
+        arr = read_frame_raw(path, name)
         if arr.shape != (self.height, self.width):
             raise PackageError(
                 name,
                 f"frame size {arr.shape[1]}x{arr.shape[0]} differs from the camera's "
                 f"{self.width}x{self.height}",
             )
+        arr.flags.writeable = False
+        if key is not None:
+            _remember(key, arr)
         return arr
 
     def load(self, index: int) -> np.ndarray:

@@ -12,13 +12,15 @@ process from the `SceneMesh`.
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from workers.pipeline.geometry.citymodel import Building
+from workers.pipeline.geometry.citymodel import Building, Polygon
 from workers.pipeline.geometry.polygons import fit_plane, triangulate
 
 
@@ -71,12 +73,11 @@ def build_scene_mesh(buildings: Iterable[Building], origin: np.ndarray | None = 
     n_verts = 0
     for building in buildings:
         for poly in building.iter_polygons():
-            plane = fit_plane(poly)
-            v, t = triangulate(poly, plane) if plane is not None else (np.zeros((0, 3)), np.zeros((0, 3)))
+            normal, v, t = _polygon_mesh(poly)
             k = len(pids)
             pids.append(poly.id)
             pbld.append(building.id)
-            normals.append(plane.normal if plane is not None else np.zeros(3))
+            normals.append(normal)
             if len(t):
                 verts.append(v)
                 tris.append(np.asarray(t, dtype=np.int64) + n_verts)
@@ -95,6 +96,36 @@ def build_scene_mesh(buildings: Iterable[Building], origin: np.ndarray | None = 
         polygon_building=tuple(pbld),
         polygon_normals=np.array(normals, dtype=np.float64).reshape(-1, 3),
     )
+
+
+#: triangulated polygons of this process, by id and coordinates (a neighbour is an occluder of
+#: many units: a flight's units triangulated the same polygons dozens of times)
+_MESH_CACHE: OrderedDict[tuple[str, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+_MESH_CACHE_SIZE = 200_000
+
+
+def _polygon_mesh(poly: Polygon) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`(normal (3,), vertices (M, 3) float64 world, triangles (K, 3) int64)` of a polygon
+    (zero normal and no triangles when degenerate), cached per process by id and coordinates."""
+    h = hashlib.blake2b(digest_size=16)
+    for r in poly.rings:
+        h.update(np.ascontiguousarray(r.coords, dtype=np.float64).tobytes())
+        h.update(b"|")
+    key = (poly.id, h.digest())
+    hit = _MESH_CACHE.get(key)
+    if hit is not None:
+        _MESH_CACHE.move_to_end(key)
+        return hit
+    plane = fit_plane(poly)
+    if plane is None:
+        out = (np.zeros(3), np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    else:
+        v, t = triangulate(poly, plane)
+        out = (plane.normal, v, np.asarray(t, np.int64))
+    _MESH_CACHE[key] = out
+    if len(_MESH_CACHE) > _MESH_CACHE_SIZE:
+        _MESH_CACHE.popitem(last=False)
+    return out
 
 
 @dataclass(frozen=True, eq=False)

@@ -152,8 +152,11 @@ class SurfaceTexture:
         self.frame[r, c] = self.obs_frame[best, r, c]
         usable = np.isfinite(v) & (res <= best_res * np.float32(o.blend_ratio))
         # robust centre of the usable observations; two that disagree: the best one decides
-        med = np.nanmedian(np.where(usable, v, np.nan), axis=0)
         n_use = usable.sum(axis=0)
+        srt = np.sort(np.where(usable, v, np.inf), axis=0)  # usable values first, ascending
+        lo = np.take_along_axis(srt, ((n_use - 1) // 2)[None], axis=0)[0]
+        hi = np.take_along_axis(srt, (n_use // 2)[None], axis=0)[0]
+        med = 0.5 * (lo + hi)
         centre = np.where(n_use == 2, v[best, n], med)
         inlier = usable & (np.abs(v - centre) <= np.float32(o.outlier_sigmas * o.noise))
         inlier[best, n] |= ~inlier.any(axis=0)  # nothing agrees with the centre: keep the best

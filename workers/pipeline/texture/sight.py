@@ -28,8 +28,7 @@ from workers.pipeline.geometry.citymodel import Polygon
 from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.texture.fusion import local_resolution
-from workers.pipeline.texture.visibility import VisibilityOptions, project_texels
+from workers.pipeline.texture.visibility import VisibilityOptions, frustum_extent
 
 #: largest number of exterior vertices sampled per polygon
 MAX_SAMPLES = 16
@@ -91,61 +90,81 @@ def surface_sight(
     raycaster: RayCaster | None,
     options: VisibilityOptions,
 ) -> list[SurfaceSight]:
-    """`SurfaceSight` of every polygon over the frames at `poses` (see the module docstring)."""
-    samples = [sample_points(p) for p in polygons]
-    wide = VisibilityOptions(
-        margin_px=options.margin_px, min_depth_m=options.min_depth_m, max_distance_m=options.max_distance_m,
-        max_view_angle_deg=90.0,
-    )  # fmt: skip
+    """`SurfaceSight` of every polygon over the frames at `poses` (see the module docstring);
+    vectorised over all sample points of all polygons per frame, one ray cast per frame."""
+    n_poly = len(polygons)
+    counts = np.zeros((n_poly, 4), np.int64)
+    best = np.full(n_poly, np.inf)
+    pts, owner, normals, s_ax, t_ax = _stack_samples(polygons)
+    if len(pts) == 0:
+        return [SurfaceSight() for _ in polygons]
     cos_limit = math.cos(math.radians(options.max_view_angle_deg))
-    counts = np.zeros((len(polygons), 4), np.int64)
-    best = np.full(len(polygons), np.inf)
+    a_lo, a_hi, b_lo, b_hi = frustum_extent(camera, options.margin_px)
     for pose in poses:
-        found: list[tuple[int, np.ndarray, np.ndarray]] = []
-        for k, s in enumerate(samples):
-            if s is None:
-                continue
-            pts, normal = s
-            if not _in_view(camera, pose, pts, wide).any():
-                continue
-            counts[k, 0] += 1
-            proj = project_texels(camera, pose, pts, normal, wide)
-            if not proj.ok.any():
-                continue
-            counts[k, 1] += 1
-            ok = proj.ok & (proj.cos_view > cos_limit)
-            if ok.any():
-                counts[k, 2] += 1
-                found.append((k, pts[ok], normal))
-        if not found:
+        R = pose.R_world_from_cam
+        xc = (pts - pose.center) @ R
+        depth = xc[:, 2]
+        dist = np.linalg.norm(xc, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a, b = xc[:, 0] / depth, xc[:, 1] / depth
+        view = (depth > options.min_depth_m) & (dist < options.max_distance_m)
+        view &= (a >= a_lo) & (a <= a_hi) & (b >= b_lo) & (b <= b_hi)
+        if not view.any():
             continue
-        pts_all = np.concatenate([p for _, p, _ in found])
-        vis = np.ones(len(pts_all), bool) if raycaster is None else raycaster.visible(
-            pts_all, pose.center, tolerance_m=options.occlusion_tolerance_m
-        )
-        start = 0
-        for k, pts, normal in found:
-            v = vis[start : start + len(pts)]
-            start += len(pts)
-            if not v.any():
-                continue
-            counts[k, 3] += 1
-            s_axis, t_axis = surface_axes(normal)
-            rs, rt = local_resolution(camera, pose, pts[v], s_axis, t_axis)
-            best[k] = min(best[k], float(np.min(np.maximum(rs, rt))))
-    return [
-        SurfaceSight(float(best[k]), *(int(x) for x in counts[k])) for k in range(len(polygons))
-    ]
+        cos_view = np.einsum("ij,ij->i", pose.center - pts, normals) / np.maximum(dist, 1e-12)
+        facing = view & (cos_view > 0)
+        in_angle = facing & (cos_view > cos_limit)
+        vis = in_angle.copy()
+        if raycaster is not None and in_angle.any():
+            idx = np.flatnonzero(in_angle)
+            vis[idx] = raycaster.visible(pts[idx], pose.center, tolerance_m=options.occlusion_tolerance_m)
+        for j, m in enumerate((view, facing, in_angle, vis)):
+            counts[np.unique(owner[m]), j] += 1
+        if vis.any():
+            idx = np.flatnonzero(vis)
+            res = _resolution(camera, pose, pts[idx], s_ax[idx], t_ax[idx])
+            np.minimum.at(best, owner[idx], res)
+    return [SurfaceSight(float(best[k]), *(int(x) for x in counts[k])) for k in range(n_poly)]
 
 
-def _in_view(camera: Camera, pose: Pose, points: np.ndarray, options: VisibilityOptions) -> np.ndarray:
-    """`(N,)` bool: points inside the image, in front of the camera and in range, whichever side
-    of their surface the camera is on."""
-    uv, depth = pose.project(camera, points)
-    dist = np.linalg.norm(points - pose.center, axis=1)
-    ok = (depth > options.min_depth_m) & (dist < options.max_distance_m)
-    ok[ok] = camera.in_image(uv[ok], margin=0.0)
-    return ok
+def _stack_samples(
+    polygons: Sequence[Polygon],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """All sample points `(N, 3)` of `polygons`, their polygon index `(N,)`, and per point the
+    polygon's unit normal, `s` and `t` axes `(N, 3)` each."""
+    pts, owner, frames = [], [], []
+    for k, p in enumerate(polygons):
+        s = sample_points(p)
+        if s is None:
+            continue
+        x, n = s
+        ax_s, ax_t = surface_axes(n)
+        pts.append(x)
+        owner.append(np.full(len(x), k))
+        frames.append(np.repeat(np.stack([n, ax_s, ax_t])[None], len(x), axis=0))
+    if not pts:
+        z = np.zeros((0, 3))
+        return z, np.zeros(0, np.intp), z, z, z
+    f = np.concatenate(frames)
+    return np.concatenate(pts), np.concatenate(owner), f[:, 0], f[:, 1], f[:, 2]
+
+
+def _resolution(
+    camera: Camera, pose: Pose, points: np.ndarray, s_axis: np.ndarray, t_axis: np.ndarray
+) -> np.ndarray:
+    """`(N,)` local resolution (m/px, the coarser of the two axes) at `points (N, 3)` with their
+    own surface axes `(N, 3)`: `fusion.local_resolution` per point."""
+    R = pose.R_world_from_cam
+    xc = (points - pose.center) @ R
+    z = xc[:, 2]
+    a, b = xc[:, 0] / z, xc[:, 1] / z
+    out = []
+    for axis in (s_axis, t_axis):
+        e = axis @ R  # directions in the camera frame
+        du = camera.fx * (e[:, 0] - a * e[:, 2]) / z
+        dv = camera.fy * (e[:, 1] - b * e[:, 2]) / z
+        out.append(1.0 / np.maximum(np.hypot(du, dv), 1e-12))
+    return np.maximum(out[0], out[1])
 
 
 def surface_resolution(requested_px_per_m: float, best_resolution_m: float, oversample: float) -> float:
