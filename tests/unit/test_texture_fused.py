@@ -42,7 +42,8 @@ def test_agreeing_observations_are_averaged_by_resolution_and_coarse_ones_left_o
     tex = SurfaceTexture.empty((1, 1), FusedOptions(keep=4, blend_ratio=2.0))
     _merge_all(tex, [290.0, 290.2, 290.1, 291.0], [0.05, 0.05, 0.10, 0.5])
     w = np.array([1 / 0.05**2, 1 / 0.05**2, 1 / 0.10**2])
-    assert float(tex.value[0, 0]) == pytest.approx(float(np.average([290.0, 290.2, 290.1], weights=w)), abs=1e-4)
+    expected = float(np.average([290.0, 290.2, 290.1], weights=w))
+    assert float(tex.value[0, 0]) == pytest.approx(expected, abs=1e-4)
     assert int(tex.count[0, 0]) == 3
 
 
@@ -81,6 +82,7 @@ def test_sight_tells_seen_hidden_and_grazing_surfaces_apart() -> None:
 
 
 def test_a_polygon_too_thin_for_a_texel_centre_still_gets_texels() -> None:
-    strip = Polygon("strip", ring("r", [[0, 0, 0], [4, 0, 0], [4, 0, 0.04], [0, 0, 0.04]]), surface_class="WallSurface")
+    outline = ring("r", [[0, 0, 0], [4, 0, 0], [4, 0, 0.04], [0, 0, 0.04]])
+    strip = Polygon("strip", outline, surface_class="WallSurface")
     grid = texel_grid(strip, "b", TexelOptions(resolution_px_per_m=10.0, min_area_m2=0.01))
     assert grid is not None and grid.n_texels == 40
