@@ -1,14 +1,39 @@
-"""Texture extraction bench: accuracy and speed of `citytherm run` on a synthetic drive.
+"""Texture bench: `citytherm run` against an independent reference texturer on real LoD2 geometry.
 
-A drive of ~200 frames around ~8 buildings of the bundled Berlin model, error-free poses (the
-package's priors are the true poses), 10 texels/m. Prints JSON:
-- accuracy: texture RMSE against the ground-truth field over observed texels (also near and away
-  from sharp edges of the field), median misregistration (phase correlation of each surface's
-  texture against the truth on the same grid, texels), coverage of the texels the frames can see;
-- speed: texture-stage frames per second per worker process (decode + visibility + sampling +
-  fusion, per building-frame pair), end-to-end wall time of `run_job` with 1 and 2 workers.
+Synthetic sequences (`workers.pipeline.synth.synthesize`) are laid over real CityGML files — the
+NRW tile 5659 (hilly, dormers, occluding neighbours), the bundled Berlin LoD2 model and the
+Potsdam LoD1 block — with every building of the file in the rendered scene (the neighbours
+occlude): a drive and a helicopter flight per file. The product runs through the shipped path
+(`workers.run.run_job`, what `citytherm run` does; true poses: `--no-refine`), the reference
+texturer (`tests/reference`: its own OpenCV projection, z-buffer, mixed-pixel test and fusion)
+gets the true poses and the same frame files. Both are evaluated against the truth field at
+their own texel centres (`tests/reference/evaluate.py`; every error figure area-weighted, as the
+two grids differ in density). Prints JSON, per scene and platform:
 
-Usage: `python bench/texture.py [--frames 200] [--buildings 8] [--workers 1,2] [--out DIR]`.
+- `product` / `reference`: RMSE, p95 and median |error| (K) on the surfaces both textured;
+  `rmse_ratio`, `p95_ratio` (product / reference; bar ≤ 1.2);
+- `surfaces_textured` (product, reference, both; bar: ratio ≥ 0.95) and
+  `observed_area_per_surface_ratio` (product / reference observed area on the surfaces both
+  textured, median and overall; the texel-per-surface figure made independent of the two grids'
+  densities; bar ≥ 0.95);
+- `hidden_surfaces_textured`: surfaces the product textured where the reference finds no clean
+  observation in any frame (bar 0; `never_seen_by_any_frame`: not even a texel centre is seen),
+  with the worst of them; `unseen_texels_delivered`: product texels at places no frame sees
+  (0.2 m tolerance), `texels_without_clean_view_delivered`: at places no frame sees cleanly;
+- `visible_untextured`: surfaces the reference textures and the product does not, by kind, in
+  buildings the product processed, with or without a reason in `report.json`;
+- `worst_surfaces_vs_reference`: the surfaces where the product's squared error exceeds the
+  reference's most (K²·m²), with the reference's median view angle;
+- `by_class`: errors by texel class (interior, boundary: within 3 px of a polygon-id change in
+  the best frame or never clean, grazing > 70°, unseen; roof, wall, other) for both;
+- `speed`: the product's texture-stage frames/s per worker process (`decode + texture` unit time
+  per building-frame pair, one process) and wall times.
+Then `errors`: one scene with the default GNSS/INS errors and refinement on (drive and flight):
+product RMSE with errors ÷ product RMSE with true poses (bar ≤ 1.5), on all surfaces it textured.
+
+Usage: `python bench/texture.py [--scenes nrw,berlin,potsdam] [--platform drive,flight]
+[--frames 60,24] [--errors-scene nrw|none] [--quick] [--out DIR]`. `--quick`: the NRW tile only,
+30 drive and 12 flight frames (a few minutes); the default run takes ~10–15 min on 2 cores.
 """
 
 from __future__ import annotations
@@ -21,96 +46,137 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from db.citygml.reader import read_model
-from db.synth_files import write_synthetic_package
-from workers.job import RunOptions
-from workers.pipeline.synth import BUNDLED_MODEL, ErrorOptions, SynthOptions, synthesize
-from workers.run import run_job
-from workers.synth_eval import texture_accuracy
+from tests.reference.compare import SCENES, CaseSpec, make_case, run_product, run_reference
+from tests.reference.evaluate import compare_case
+
+
+def bars(fig: dict[str, Any]) -> dict[str, bool | None]:
+    """The issue's bars on one true-pose case (None when a figure is undefined)."""
+
+    def le(x: float | None, limit: float) -> bool | None:
+        return None if x is None else x <= limit
+
+    def ge(x: float | None, limit: float) -> bool | None:
+        return None if x is None else x >= limit
+
+    return {
+        "rmse<=1.2x_reference": le(fig["rmse_ratio"], 1.2),
+        "p95<=1.2x_reference": le(fig["p95_ratio"], 1.2),
+        "hidden_surfaces_textured==0": fig["hidden_surfaces_textured"]["count"] == 0,
+        "surfaces_textured>=0.95x_reference": ge(fig["surfaces_textured"]["ratio"], 0.95),
+        "observed_area_per_surface>=0.95x_reference": ge(
+            fig["observed_area_per_surface_ratio"]["median"], 0.95
+        ),
+        "visible_untextured_all_with_reason": fig["visible_untextured"]["without_reason"] == 0,
+    }
+
+
+def run_case(
+    spec: CaseSpec, root: Path, refine: bool, options: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Synthesize, run the product (with `options` overrides) and the reference, compare; the
+    case's JSON block."""
+    case = make_case(spec, root)
+    run = run_product(case, root / spec.name / "results", refine=refine, options=options)
+    polys, refs, ref_s = run_reference(case)
+    fig = compare_case(case, run.out_dir, run.report, polys, refs)
+    fig["speed"] = {
+        "texture_frames_per_s_per_process": round(run.frames_per_s, 1) if run.frames_per_s else None,
+        "building_frame_pairs": run.pairs,
+        "texture_stage_s": round(run.texture_stage_s, 2),
+        "product_wall_s": round(run.wall_s, 1),
+        "product_stage_s": {k: round(float(v), 2) for k, v in run.report.get("timings_s", {}).items()},
+        "reference_s": round(ref_s, 1),
+        "synth_s": round(case.synth_s, 1),
+        "load_average_1min": round(os.getloadavg()[0], 2),
+    }
+    cal = run.report.get("calibration", {})
+    orient = [b.get("orientation", {}) for b in run.report.get("buildings", [])]
+    n_or = sum(int(o.get("frames") or 0) for o in orient)
+    fig["orientation"] = {
+        "calibration_accepted": cal.get("accepted"),
+        "calibration_reason": cal.get("reason"),
+        "unit_frames_refined_share": round(sum(int(o.get("refined") or 0) for o in orient) / n_or, 3)
+        if n_or
+        else None,
+    }
+    fig["frames"] = spec.n_frames
+    fig["buildings_in_scene"] = len(case.res.buildings)
+    fig["buildings_processed"] = len(run.report.get("buildings", []))
+    fig["product_resolution_px_per_m"] = run.report.get("resolution_px_per_m")
+    return fig
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--buildings", type=int, default=8)
-    ap.add_argument("--resolution", type=float, default=10.0)
-    ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--scenes", default="nrw,berlin,potsdam", help=f"comma list of {sorted(SCENES)}")
+    ap.add_argument("--platform", default="drive,flight")
+    ap.add_argument("--frames", default="60,24", help="drive,flight frame counts")
+    ap.add_argument("--errors-scene", default="nrw", help="scene of the GNSS/INS error runs, or none")
+    ap.add_argument("--cluster", type=int, default=4)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--quick", action="store_true", help="NRW only, 30 drive / 12 flight frames")
+    ap.add_argument("--out", type=Path, default=None, help="keep the packages and results here")
+    ap.add_argument(
+        "--options",
+        type=json.loads,
+        default=None,
+        help='overrides of the job options as JSON, e.g. \'{"unit": {"texel": {"oversample": 1}}}\'',
+    )
     a = ap.parse_args()
+    if a.quick:
+        a.scenes, a.frames = "nrw", "30,12"
+        a.errors_scene = "nrw" if a.errors_scene != "none" else "none"
+    n_drive, n_flight = (int(x) for x in a.frames.split(","))
+    frames = {"drive": n_drive, "flight": n_flight}
+    platforms = [p for p in a.platform.split(",") if p]
     root = a.out or Path(tempfile.mkdtemp(prefix="citytherm-bench-texture-"))
     root.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    res = synthesize(
-        read_model(BUNDLED_MODEL)[1],
-        SynthOptions(
-            n_frames=a.frames,
-            seed=a.seed,
-            buildings=a.buildings,
-            errors=ErrorOptions(enabled=False),
-            model_path=str(BUNDLED_MODEL),
-        ),
-    )
-    pkg = write_synthetic_package(res, root / "seq")
-    t_synth = time.perf_counter() - t0
-    out: dict = {
-        "bench": "texture",
-        "frames": a.frames,
-        "cluster_buildings": len(res.truth.cluster),
-        "scene_buildings": len(res.buildings),
-        "resolution_px_per_m": a.resolution,
-        "camera": [res.manifest.camera.width, res.manifest.camera.height],
-        "synth_s": round(t_synth, 1),
-        "runs": {},
-    }
-    first: Path | None = None
-    for w in [int(x) for x in a.workers.split(",")]:
-        dest = root / f"run_w{w}"
-        shutil.rmtree(dest, ignore_errors=True)
-        t1 = time.perf_counter()
-        c1 = os.times()
-        summary = run_job(
-            BUNDLED_MODEL,
-            pkg,
-            dest,
-            RunOptions.build(resolution_px_per_m=a.resolution, workers=w, refine=False, display=False),
-        )
-        wall = time.perf_counter() - t1
-        c2 = os.times()
-        cpu = (c2.user - c1.user) + (c2.system - c1.system)  # this process (pool workers not counted)
-        rep = json.loads((dest / "report.json").read_text())
-        st = rep["unit_stage_timings_s"]
-        pairs = sum(summary.units_frames.values())
-        tex_s = st.get("decode", 0.0) + st.get("texture", 0.0)
-        out["runs"][f"workers_{w}"] = {
-            "wall_s": round(wall, 2),
-            "cpu_s_main_process": round(cpu, 2),
-            "load_average_1min": round(os.getloadavg()[0], 2),
-            "stage_s": {k: round(v, 2) for k, v in summary.timings_s.items()},
-            "buildings_processed": len(summary.results),
-            "building_frame_pairs": pairs,
-            "texture_stage_s": round(tex_s, 2),
-            "texture_frames_per_s_per_process": round(pairs / tex_s, 1) if tex_s else None,
-            "unit_stage_s": {k: round(v, 2) for k, v in st.items()},
-        }
-        first = first or dest
-    runs = out["runs"]
-    if "workers_1" in runs and "workers_2" in runs:
-        out["speedup_2_workers"] = round(runs["workers_1"]["wall_s"] / runs["workers_2"]["wall_s"], 2)
-    if first is not None:
-        acc = texture_accuracy(first, res)
-        out["accuracy"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in acc.items()}
-        out["bars"] = {
-            "rmse_k<=0.35": acc["rmse_k"] <= 0.35,
-            "misregistration<=0.3": acc["misregistration_median_texel"] <= 0.3,
-            "coverage>=0.95": acc["coverage"] >= 0.95,
-            "fps>=20 (1 process)": (runs.get("workers_1", {}).get("texture_frames_per_s_per_process") or 0)
-            >= 20,
-        }
-    out["results"] = str(root)
+    out: dict[str, Any] = {"bench": "texture-vs-reference", "quick": a.quick, "cases": {}}
+    for scene in a.scenes.split(","):
+        for plat in platforms:
+            spec = CaseSpec(scene, plat, frames[plat], seed=a.seed, cluster=a.cluster)  # type: ignore[arg-type]
+            fig = run_case(spec, root, refine=False, options=a.options)
+            fig["bars"] = bars(fig)
+            out["cases"][spec.name] = fig
+            print(f"# {spec.name}: done at {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    if a.errors_scene != "none":
+        out["errors"] = {}
+        for plat in platforms:
+            base = CaseSpec(a.errors_scene, plat, frames[plat], seed=a.seed, cluster=a.cluster)  # type: ignore[arg-type]
+            if base.name not in out["cases"]:
+                out["cases"][base.name] = run_case(base, root, refine=False, options=a.options)
+            spec = CaseSpec(a.errors_scene, plat, frames[plat], errors=True, seed=a.seed, cluster=a.cluster)  # type: ignore[arg-type]
+            fig = run_case(spec, root, refine=True, options=a.options)
+            true_rmse = out["cases"][base.name]["product_all_surfaces"]
+            err_rmse = fig["product_all_surfaces"]
+            ratio = (
+                round(err_rmse["rmse_k"] / true_rmse["rmse_k"], 3)
+                if err_rmse["rmse_k"] is not None and true_rmse["rmse_k"]
+                else None
+            )
+            out["errors"][spec.name] = {
+                "product_rmse_errors_refined_k": err_rmse["rmse_k"],
+                "product_rmse_true_poses_k": true_rmse["rmse_k"],
+                "ratio": ratio,
+                "bar_ratio<=1.5": None if ratio is None else ratio <= 1.5,
+                "vs_reference_same_case": {k: fig[k] for k in ("product", "reference", "rmse_ratio")},
+                "surfaces_textured": fig["surfaces_textured"],
+                "hidden_surfaces_textured": fig["hidden_surfaces_textured"]["count"],
+                "orientation": fig["orientation"],
+                "worst_surfaces_vs_reference": fig["worst_surfaces_vs_reference"][:4],
+                "speed": fig["speed"],
+            }
+            print(f"# {spec.name}: done at {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    out["total_s"] = round(time.perf_counter() - t0, 1)
+    out["results"] = str(root) if a.out is not None else None
+    if a.out is None:
+        shutil.rmtree(root, ignore_errors=True)
     print(json.dumps(out, indent=1))
 
 

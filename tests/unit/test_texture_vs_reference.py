@@ -1,0 +1,74 @@
+"""The product's textures against the independent reference texturer (issue 15's bars), on a
+small synthetic drive (34 frames) and flight (15 frames) over the real NRW LoD2 tile, true poses,
+the product through its shipped path (`workers.run.run_job`, no refinement).
+
+Bars (on the surfaces both texture, each texturer evaluated at its own texel centres against
+the truth): product RMSE ≤ 1.2 × the reference's; no surface textured that the reference sees
+cleanly in no frame; surfaces textured ≥ 0.95 × the reference's. Scene building and evaluation
+live in `tests/reference` (shared with `bench/texture.py`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.reference.compare import CaseSpec, make_case, run_product, run_reference
+from tests.reference.evaluate import compare_case
+
+pytestmark = pytest.mark.slow
+
+CASES = {
+    "drive": CaseSpec("nrw", "drive", 34, seed=1, cluster=4),
+    "flight": CaseSpec("nrw", "flight", 15, seed=1, cluster=4),
+}
+_FIGURES: dict[str, dict[str, Any]] = {}
+
+
+@pytest.fixture(scope="module", params=sorted(CASES))
+def figures(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The comparison figures of one case (computed once per module and platform)."""
+    name = request.param
+    if name not in _FIGURES:
+        root: Path = tmp_path_factory.mktemp(f"vsref-{name}")
+        case = make_case(CASES[name], root)
+        run = run_product(case, root / "results", refine=False)
+        polys, refs, _ = run_reference(case)
+        _FIGURES[name] = compare_case(case, run.out_dir, run.report, polys, refs)
+        _FIGURES[name]["case"] = name
+    return _FIGURES[name]
+
+
+def _brief(fig: dict[str, Any]) -> str:
+    """The headline figures for a failure message."""
+    keys = ("case", "product", "reference", "rmse_ratio", "surfaces_textured", "hidden_surfaces_textured")
+    return json.dumps({k: fig[k] for k in keys}, default=str)[:1500]
+
+
+def test_rmse_within_1_2_of_reference(figures: dict[str, Any]) -> None:
+    assert figures["rmse_ratio"] is not None, _brief(figures)
+    assert figures["rmse_ratio"] <= 1.2, _brief(figures)
+
+
+def test_nothing_textured_that_no_frame_sees(figures: dict[str, Any]) -> None:
+    """No surface textured that no frame sees at all, no texel where no frame sees the surface
+    (the reference's z-buffer, a texel or two of tolerance at boundaries)."""
+    assert figures["hidden_surfaces_textured"]["never_seen_by_any_frame"] == 0, _brief(figures)
+    assert figures["unseen_texels_delivered"]["texels"] == 0, _brief(figures)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 15 open: a few surfaces that the reference sees only through mixed pixels get "
+    "texels (walls at their foot, where the synthetic flat ground the product cannot know covers "
+    "part of the footprint; slivers whose footprint lies on a coplanar polygon of the same wall)",
+)
+def test_no_surface_textured_from_mixed_pixels_only(figures: dict[str, Any]) -> None:
+    assert figures["hidden_surfaces_textured"]["count"] == 0, _brief(figures)
+
+
+def test_surfaces_textured_as_many_as_reference(figures: dict[str, Any]) -> None:
+    assert figures["surfaces_textured"]["ratio"] >= 0.95, _brief(figures)
