@@ -185,6 +185,7 @@ def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
             "refined": len(refined),
             "mean_rms_px": float(np.mean([p.rms_px for p in refined])) if refined else None,
             "mean_matches": float(np.mean([p.matches for p in refined])) if refined else None,
+            "frames_withheld": list(r.frames_withheld),
         },
         "timings_s": dict(r.timings_s),
         "surfaces": [

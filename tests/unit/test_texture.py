@@ -137,3 +137,27 @@ def test_alignment_pulls_frames_with_a_pose_error_onto_the_fused_texture():
     (rmse_on, _, _), shifts = results[True]
     assert rmse_on < 0.6 * rmse_off
     assert shifts and all(abs(dx) > 0.5 for f, (dx, _) in shifts.items() if f >= 4)
+
+
+def _keep_priors(camera, building, raycaster, frames, frame_source, prior, accuracy, **_):
+    """A refiner that confirms no pose: every frame keeps its prior."""
+    from workers.pipeline.results import RefinedPose
+
+    return {f: RefinedPose(f, prior[f], "prior", float("nan"), 0) for f in frames}
+
+
+@pytest.mark.parametrize(("sigma_m", "sigma_deg", "textured"), [(2.0, 1.0, False), (0.005, 0.005, True)])
+def test_frames_left_at_uncertain_priors_do_not_texture_the_building(sigma_m, sigma_deg, textured):
+    from workers.pipeline.geometry.manifest import Accuracy
+    from workers.pipeline.units import run_building_unit
+
+    buildings, poses, frames = _drive(n=4)
+    acc = Accuracy(np.full(3, sigma_m), np.full(3, sigma_deg))
+    (unit,) = plan_units(buildings, CAM, poses, MemoryFrames(frames), Radiometry(), accuracy=acc)
+    result = run_building_unit(unit, refiner=_keep_priors)
+    wall = next(s for s in result.surfaces if s.polygon_id == "B1_w0")
+    if textured:  # priors good to a fraction of a pixel: the frames texture the building
+        assert result.frames_withheld == () and wall.texels_observed > 0
+    else:  # priors metres off: no texture from them, and the report says why
+        assert set(result.frames_withheld) == set(unit.frames)
+        assert wall.texels_observed == 0 and "withheld" in wall.reason

@@ -132,6 +132,8 @@ class BuildingResult:
         poses: per-frame orientation against this building.
         anomalies: heat-leak candidates found on its surfaces.
         timings_s: seconds per stage inside the unit (e.g. `orient`, `texture`, `atlas`).
+        frames_withheld: frames that did not texture the building: refinement left them at
+            priors too uncertain for it (`units.withheld_frames`).
     """
 
     building_id: str
@@ -142,6 +144,7 @@ class BuildingResult:
     poses: tuple[FramePose, ...] = ()
     anomalies: tuple[Anomaly, ...] = ()
     timings_s: Mapping[str, float] = field(default_factory=dict)
+    frames_withheld: tuple[int, ...] = ()
 
 
 def output_radiometry(radiometry: Radiometry, frame_dtype: np.dtype) -> Radiometry:

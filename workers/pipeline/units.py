@@ -14,8 +14,9 @@ textured (`texture_unit`) and packed. A unit keeps no global state and writes no
 from __future__ import annotations
 
 import logging
+import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
@@ -53,6 +54,10 @@ class UnitOptions:
         theme: appearance theme of the textures.
         refine: options of the per-building pose refinement (`orientation.building`); None
             textures with the poses as given (GNSS/INS, calibrated or sequence-oriented).
+        max_prior_px: with refinement, a frame whose pose the refinement did not confirm (it
+            kept its prior) textures the building only when the prior's a-priori uncertainty,
+            projected onto the building, is at most this many pixels (`prior_sigma_px`): a
+            texture from a pose metres off is worse than none (inf: always).
     """
 
     texel: TexelOptions = field(default_factory=TexelOptions)
@@ -61,6 +66,7 @@ class UnitOptions:
     atlas: AtlasOptions = field(default_factory=AtlasOptions)
     theme: str = "thermal-ir"
     refine: CoregisterOptions | None = field(default_factory=CoregisterOptions)
+    max_prior_px: float = 3.0
 
 
 class Refiner(Protocol):
@@ -120,6 +126,32 @@ class BuildingUnit:
                 f"unit {self.building.id}: frames ({len(self.frames)}), poses ({len(self.poses)}) "
                 f"and times ({len(self.times)}) differ in length"
             )
+
+
+def prior_sigma_px(unit: BuildingUnit, pose: Pose) -> float:
+    """A-priori uncertainty (pixels, 1σ) of a prior `pose` projected onto the unit's building:
+    `f · (σ_position / distance + σ_attitude)` with the RMS of the accuracy's three components
+    (`unit.accuracy`; 1 m and 1° when the sequence states none) and the distance to the
+    building's bounding-box centre."""
+    acc = unit.accuracy
+    sp = float(np.sqrt(np.mean(np.square(acc.position_m)))) if acc is not None else 1.0
+    sa_deg = float(np.sqrt(np.mean(np.square(acc.attitude_deg)))) if acc is not None else 1.0
+    sa = math.radians(sa_deg)
+    lo, hi = unit.building.bounds()
+    d = max(float(np.linalg.norm(0.5 * (np.asarray(lo) + np.asarray(hi)) - pose.center)), 1.0)
+    return max(unit.camera.fx, unit.camera.fy) * (sp / d + sa)
+
+
+def withheld_frames(
+    unit: BuildingUnit, poses: Mapping[int, Pose], records: tuple[FramePose, ...]
+) -> list[int]:
+    """Frames that must not texture the building: with refinement on, those that kept a prior
+    whose projected uncertainty exceeds `options.max_prior_px` (`prior_sigma_px`)."""
+    if unit.options.refine is None or not np.isfinite(unit.options.max_prior_px):
+        return []
+    kept = {r.frame for r in records if r.status == "prior"}
+    limit = unit.options.max_prior_px
+    return [f for f in unit.frames if f in kept and prior_sigma_px(unit, poses[f]) > limit]
 
 
 def refine_unit(
@@ -222,13 +254,18 @@ class UnitTextures:
     reasons: dict[str, str] = field(default_factory=dict)
 
 
-def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCaster | None) -> UnitTextures:
+def texture_unit(
+    unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCaster | None, withheld: Sequence[int] = ()
+) -> UnitTextures:
     """Texel grids for every polygon of the unit's building (at the resolution the frames support,
-    `texture.sight`) and the textures fused from its frames."""
+    `texture.sight`) and the textures fused from its frames, but for the `withheld` ones (poses too
+    uncertain, `withheld_frames`)."""
     opts = unit.options
     t0 = time.perf_counter()
+    skip = set(withheld)
+    frames = [f for f in unit.frames if f not in skip]
     owned = [(part.id, poly) for part in unit.building.iter_buildings() for poly in part.polygons]
-    sights = surface_sight([p for _, p in owned], unit.camera, [poses[f] for f in unit.frames], raycaster,
+    sights = surface_sight([p for _, p in owned], unit.camera, [poses[f] for f in frames], raycaster,
                            opts.visibility)  # fmt: skip
     polygons: list[Polygon] = []
     grids: list[TexelGrid] = []
@@ -241,6 +278,8 @@ def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCa
             r = surface_resolution(r, sight.best_resolution_m, opts.texel.oversample)
         grid = texel_grid(poly, part_id, replace(opts.texel, resolution_px_per_m=r))
         reason = sight.reason_unseen(opts.visibility.max_view_angle_deg)
+        if not sight.seen and skip:
+            reason = f"{len(skip)} frames withheld: poses left at priors too uncertain to texture from"
         if sight.seen:
             reason = "no texel passed the clean-pixel test (too small or thin for the sampling footprint)"
         if grid is None:
@@ -259,7 +298,7 @@ def texture_unit(unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCa
     t_grid = time.perf_counter() - t0
     t_load = 0.0
     t_tex = 0.0
-    for f in unit.frames:
+    for f in frames:
         t1 = time.perf_counter()
         image = unit.frame_source.load(f)
         t2 = time.perf_counter()
@@ -287,8 +326,9 @@ def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) ->
     t_scene = time.perf_counter() - t0
     t0 = time.perf_counter()
     poses, records = refine_unit(unit, raycaster, refiner)
+    withheld = withheld_frames(unit, poses, records)
     t_orient = time.perf_counter() - t0
-    tex = texture_unit(unit, poses, raycaster)
+    tex = texture_unit(unit, poses, raycaster, withheld)
     t0 = time.perf_counter()
     tiles, appearance = build_atlas(
         unit.building.id,
@@ -315,4 +355,5 @@ def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) ->
         surfaces=stats,
         poses=records,
         timings_s=timings,
+        frames_withheld=tuple(withheld),
     )

@@ -56,6 +56,9 @@ class VisibilityOptions:
         buffer_step_px: the occlusion test casts every `buffer_step_px`-th pixel in both
             directions (2: a quarter of the rays); a texel's test then reads the 2x2 cast pixels
             around it (spanning its bilinear pixels and the blur margin up to the step).
+        pixel_area: near a silhouette, the footprint's pixels must see the texel's plane over
+            their whole area, tested by rays through their corners as well as their centres (a
+            pixel half on a neighbour is a mixed pixel even when its centre is not).
         coplanar_deg, coplanar_m: polygons of one building whose normals differ by less than
             `coplanar_deg` and whose planes are less than `coplanar_m` apart form one plane (a
             facade split into several polygons).
@@ -63,7 +66,7 @@ class VisibilityOptions:
 
     margin_px: float = 2.0
     min_depth_m: float = 0.5
-    max_distance_m: float = 500.0
+    max_distance_m: float = 800.0
     max_view_angle_deg: float = 80.0
     max_texel_ratio: float = 3.0
     occlusion_tolerance_m: float = 0.05
@@ -71,6 +74,7 @@ class VisibilityOptions:
     depth_tolerance_rel: float = 0.02
     blur_margin_px: int = 1
     buffer_step_px: int = 2
+    pixel_area: bool = True
     coplanar_deg: float = 1.0
     coplanar_m: float = 0.05
 
@@ -226,6 +230,17 @@ def pixel_rays(camera: Camera) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=4)
+def corner_rays(camera: Camera) -> np.ndarray:
+    """Unit rays `(H + 1, W + 1, 3)` float32 through every pixel corner (pixel `(u - ½, v - ½)`
+    at `[v, u]`), camera frame; cached per camera (read-only)."""
+    uu, vv = np.meshgrid(np.arange(camera.width + 1.0) - 0.5, np.arange(camera.height + 1.0) - 0.5)
+    rays = camera.bearing(np.stack([uu.ravel(), vv.ravel()], axis=1))
+    out = rays.reshape(camera.height + 1, camera.width + 1, 3).astype(np.float32)
+    out.flags.writeable = False
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class HitBuffer:
     """What the pixels bilinear sampling reads see in one frame: first-hit distance and polygon,
@@ -347,6 +362,7 @@ class OcclusionScene:
         full = pixel_rays(camera)
         self._rays = {1: full, self.step: np.ascontiguousarray(full[:: self.step, :: self.step])}
         self.options = options
+        self._corners = corner_rays(camera) if options.pixel_area else None
         self.polygon_index = mesh.polygon_index()
         self.polygon_group = np.append(plane_groups(mesh, options), -1).astype(np.intp)
 
@@ -372,6 +388,51 @@ class OcclusionScene:
             t[pix], poly[pix] = self._raycaster.cast_local(rays)
         return HitBuffer(width=W, height=H, step=step, t=t, polygon=poly)
 
+    def _corner_index(self, uv: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Flat index `(N,)` of the top-left corner of each sample's footprint (the 2x2 bilinear
+        pixels grown by `margin`), the flat offsets of its `(3 + 2·margin)²` corners, and the
+        corner grid's width."""
+        assert self._corners is not None
+        H1, W1 = self._corners.shape[:2]
+        n = 3 + 2 * margin
+        c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp) - margin, 0, max(W1 - n, 0))
+        r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp) - margin, 0, max(H1 - n, 0))
+        k = np.arange(n)
+        return r0 * W1 + c0, (k[:, None] * W1 + k[None, :]).ravel(), W1
+
+    def pure_footprint(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]],
+                       margin: int) -> list[np.ndarray]:
+        """Per surface `(N,)` bool: rays through every corner of the samples' footprint pixels
+        (the 2x2 bilinear pixels grown by `margin`) see the texel's own plane at its distance
+        (all True without `pixel_area`)."""
+        if self._corners is None or not samples:
+            return [np.ones(len(uv), bool) for uv, _, _ in samples]
+        H1, W1 = self._corners.shape[:2]
+        all_uv = np.concatenate([uv for uv, _, _ in samples])
+        lin, offs, _ = self._corner_index(all_uv, margin)
+        need = np.zeros(H1 * W1, np.bool_)
+        for off in offs:
+            need[lin + off] = True
+        pix = np.flatnonzero(need)
+        t = np.full(H1 * W1, np.inf, np.float32)
+        poly = np.full(H1 * W1, -1, np.int32)
+        if len(pix):
+            rays = np.empty((len(pix), 6), np.float32)
+            rays[:, :3] = (pose.center - self.mesh.origin).astype(np.float32)
+            rays[:, 3:] = self._corners.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
+            t[pix], poly[pix] = self._raycaster.cast_local(rays)
+        o = self.options
+        out = []
+        for uv, d, g in samples:
+            lin, offs, _ = self._corner_index(uv, margin)
+            tol = o.depth_tolerance_m + o.depth_tolerance_rel * d
+            ok = np.ones(len(uv), bool)
+            for off in offs:
+                j = lin + off
+                ok &= (self.polygon_group[poly[j]] == g) & (np.abs(t[j] - d) <= tol)
+            out.append(ok)
+        return out
+
     def visible(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]]) -> list[np.ndarray]:
         """Occlusion and silhouette test of a frame's texel samples, per surface.
 
@@ -390,9 +451,10 @@ class OcclusionScene:
         all_uv = np.concatenate([uv for uv, _, _ in samples])
         if self.step == 1:
             buf = self.buffer(pose, all_uv, 1, o.blur_margin_px)
+            pure = self.pure_footprint(pose, samples, o.blur_margin_px)
             return [
-                consistent_samples(buf, uv, d, g, self.polygon_group, o, o.blur_margin_px)
-                for uv, d, g in samples
+                consistent_samples(buf, uv, d, g, self.polygon_group, o, o.blur_margin_px) & p
+                for (uv, d, g), p in zip(samples, pure, strict=True)
             ]
         coarse = self.buffer(pose, all_uv, self.step, 1)
         out, near = [], []
@@ -409,9 +471,11 @@ class OcclusionScene:
                 1,
                 o.blur_margin_px,
             )
-            for k, ((uv, d, g), n) in enumerate(zip(samples, near, strict=True)):
-                if len(n):
-                    out[k][n] = consistent_samples(
-                        fine, uv[n], d[n], g, self.polygon_group, o, o.blur_margin_px
-                    )
+            subs = [(uv[n], d[n], g) for (uv, d, g), n in zip(samples, near, strict=True)]
+            pure = self.pure_footprint(pose, subs, o.blur_margin_px)
+            for k, (uv, d, g) in enumerate(subs):
+                if len(uv):
+                    out[k][near[k]] = consistent_samples(
+                        fine, uv, d, g, self.polygon_group, o, o.blur_margin_px
+                    ) & pure[k]
         return out
