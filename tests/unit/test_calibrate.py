@@ -3,6 +3,8 @@ conversion to the manifest's mounting terms (`workers.pipeline.orientation.mount
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, replace
+
 import cv2
 import numpy as np
 import pytest
@@ -17,21 +19,26 @@ from workers.pipeline.geometry.manifest import (
     SequenceManifest,
 )
 from workers.pipeline.geometry.pose import Pose
-from workers.pipeline.geometry.pose_increments import pose_delta, so3_exp
+from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, so3_exp
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation import edge_observations
 from workers.pipeline.orientation.calibration import (
+    CalibrationOptions,
     SequenceCalibration,
     apply_calibration,
     calibrate_sequence,
     calibrated_accuracy,
 )
 from workers.pipeline.orientation.calibration_model import design, frame_motion
+from workers.pipeline.orientation.common_correction import JointOptions, _translation_levels
+from workers.pipeline.orientation.edge_observations import FrameWireframes, visible_samples
 from workers.pipeline.orientation.mounting import (
     calibrated_mounting,
     calibration_report,
     mounting_document,
     wrap_deg,
 )
+from workers.pipeline.orientation.wireframe import EdgeOptions, mesh_wireframe
 from workers.pipeline.synth import ErrorOptions, SynthOptions, SynthResult, procedural_block, synthesize
 
 N_FRAMES = 40  # 30 frames leave too few frames seeing edges for the +5 m start (bench: 40)
@@ -221,3 +228,84 @@ def test_boresight_angles_are_wrapped_near_180() -> None:
     assert np.allclose(calibrated_mounting(m, cal).boresight_deg, [0, 0, -179.5], atol=1e-9)
     assert np.allclose(wrap_deg(np.array([180.0, -180.0, 540.0, -190.0])), [180, 180, 180, 170])
     assert calibration_report(None) == {"run": False}
+
+
+def test_frame_parts_see_what_the_whole_scene_wireframe_sees(drive: Drive) -> None:
+    """`FrameWireframes.visible` (a frame's part of the scene wireframe) gives exactly the samples of
+    `visible_samples` on the whole wireframe: near the pose a part was cut for, beyond its margins
+    (cut again), and with samples asked for outside the frame."""
+    res, _, caster, _ = drive
+    wf = mesh_wireframe(caster.mesh, EdgeOptions())
+    cam = res.manifest.camera
+    parts = FrameWireframes(wf, cam)
+    wide = replace(EdgeOptions(), image_margin_px=-200.0)
+    rng = np.random.default_rng(5)
+    seen = 0
+    for i, pose in enumerate(res.truth.poses[::4]):
+        for size in (0.0, 1.0, 1.9, 5.0):  # degrees and metres; margins 2 m, 2 deg
+            d = rng.normal(size=6)
+            d[:3] *= np.radians(size) / np.linalg.norm(d[:3])
+            d[3:] *= size / np.linalg.norm(d[3:])
+            p = apply_delta(pose, d)
+            for eo in (EdgeOptions(), wide):
+                whole = visible_samples(wf, cam, p, caster, eo, 10**6)
+                part = parts.visible(i, p, caster, eo, 10**6)
+                for name in ("points", "edge", "direction", "weight", "corners", "corner_points"):
+                    assert np.array_equal(getattr(whole, name), getattr(part, name)), (i, size, name)
+                seen += len(whole.points)
+    assert seen > 1000
+
+
+def test_the_translation_search_is_coarse_to_fine() -> None:
+    """The whole range of common world translations is searched on about a thousand nodes, not on
+    the 13³ = 2,197 of a 1 m grid over ±6 m, then refined to a quarter step around the best; the
+    units' narrow search (±1 m, 0.5 m) stays the plain two-level one."""
+    jo = JointOptions()
+    levels = _translation_levels(jo)
+    first = (2 * round(levels[0][0] / levels[0][1]) + 1) ** 3
+    # later whole-range levels: the nodes within two steps of the previous level's best
+    whole = first + sum(2 * jo.translation_candidates * 5**3 for *_, w in levels[1:] if w)
+    assert first <= 7**3 and whole < 2197 / 2, (first, whole)
+    assert np.isclose(levels[-1][1], jo.translation_step_m / 4) and not levels[-1][4]
+    narrow = _translation_levels(replace(jo, translation_max_m=1.0, translation_step_m=0.5))
+    assert [(h, s) for h, s, *_ in narrow] == [(1.0, 0.5), (0.5, 0.125)]
+
+
+@dataclass
+class RepeatedFrames:
+    """A `FrameSource` repeating `imgs` (frame i is `imgs[i % len(imgs)]`) that counts its loads."""
+
+    imgs: list[np.ndarray]
+    loads: list[int] = field(default_factory=list)
+
+    def load(self, index: int) -> np.ndarray:
+        """Frame `index` `(H, W)` float32."""
+        self.loads.append(index)
+        return self.imgs[index % len(self.imgs)]
+
+
+def test_the_calibration_cost_does_not_grow_with_the_sequence_length(drive: Drive,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 3× longer sequence (the drive's frames repeated) loads as many frames and computes about
+    as many visible wireframes: a bounded sample of frames takes part."""
+    res, imgs, caster, _ = drive
+    truth = list(res.truth.poses)
+    calls = [0]
+    counted = edge_observations.visible_wireframe
+
+    def counting(*args: object, **kwargs: object) -> object:
+        calls[0] += 1
+        return counted(*args, **kwargs)
+
+    monkeypatch.setattr(edge_observations, "visible_wireframe", counting)
+    cost = {}
+    for n in (120, 360):
+        frames = RepeatedFrames(imgs)
+        calls[0] = 0
+        priors = {i: offset_pose(truth[i % N_FRAMES], 1.0, 0.0) for i in range(n)}
+        times = {i: 0.1 * i for i in range(n)}
+        calibrate_sequence(res.manifest.camera, caster, list(range(n)), frames, priors, times,
+                           res.manifest.accuracy)
+        cost[n] = (len(frames.loads), calls[0])
+    assert cost[360][0] <= CalibrationOptions().max_frames and cost[360][0] <= cost[120][0] + 2, cost
+    assert cost[360][1] <= 1.3 * cost[120][1], cost

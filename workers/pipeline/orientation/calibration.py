@@ -26,14 +26,19 @@ Model (`calibration_model`): frame i's correction `δ_i = (ω_i, dC_i)`
 vibration) of a-priori σ `prior.frame_sigma_*` (`priors.PriorOptions`), eliminated by a Schur complement.
 
 Method:
-1. up to `max_frames` frames spread over the sequence whose prior view shows scene edges;
+1. up to `max_frames` frames spread over the sequence whose prior view shows scene edges, chosen
+   among at most `look_frames` evenly spread ones (the cost is bounded, whatever the sequence
+   length; the visible samples of each frame come from its part of the scene wireframe,
+   `edge_observations.FrameWireframes`);
 2. start: the common correction `(ω, b)` of those frames from `common_correction.joint_fit`
    against the scene wireframe (oriented-gradient search over common image shifts and common
    world translations, then a robust adjustment), `l = 0`, `τ = 0`;
 3. Gauss-Newton of θ and the `ε_i` from every frame's edge-normal distances (1-D gradient search
    along each projected edge sample, Tukey weights; `edge_observations.normal_equations`) with a
    shrinking search radius; θ has a weighted prior of zero (`Accuracy` for `ω` and `b`,
-   `lever_arm_sigma_m`, `time_delay_sigma_s`);
+   `lever_arm_sigma_m`, `time_delay_sigma_s`); τ is then searched on a grid (oriented-gradient
+   score, all candidate delays of a frame projected at once) and, when it moved, θ adjusted
+   again from there;
 4. accepted when the mean edge support of the frames reaches `min_mean_support`, at least
    `min_supported_frames` frames are supported, and the correction is plausible; otherwise the
    priors are kept (`accepted` False, `reason` says why).
@@ -51,14 +56,14 @@ from workers.pipeline.geometry.manifest import Accuracy, FrameSource
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.orientation.calibration_model import N_PARAMS, design, frame_motion
+from workers.pipeline.orientation.calibration_model import N_PARAMS, delay_poses, design, frame_motion
 from workers.pipeline.orientation.common_correction import JointOptions, joint_fit
 from workers.pipeline.orientation.edge_observations import (
+    FrameWireframes,
     edge_support,
     frame_edges,
     image_normals,
     normal_equations,
-    visible_samples,
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
@@ -85,14 +90,17 @@ __all__ = [
 class CalibrationOptions:
     """Parameters of the sequence calibration (metres, degrees, seconds, pixels)."""
 
-    # at most this many frames (evenly spread over the sequence) take part
+    # at most this many frames (evenly spread over the sequence) take part, chosen among at
+    # most `look_frames` (evenly spread) whose prior view shows scene edges: the cost does not
+    # grow with the sequence length
     max_frames: int = 40
+    look_frames: int = 80
     # the start: `joint_fit` over the frames (its support test is loose: one common correction
     # does not align frames with white noise; the final test below, after the per-frame
     # deviations are adjusted, decides)
     joint: JointOptions = field(default_factory=lambda: JointOptions(
         max_frames=40, coarse_frames=20, max_correction_m=12.0, max_correction_deg=10.0,
-        min_mean_support=0.2))
+        min_mean_support=0.2, visibility_reuse_px=3.0))
     edges: EdgeOptions = field(default_factory=EdgeOptions)
     fit: FrameFitOptions = field(default_factory=FrameFitOptions)
     features: FeatureOptions = field(default_factory=FeatureOptions)
@@ -116,6 +124,9 @@ class CalibrationOptions:
     radius_start_px: float = 12.0
     radius_decay: float = 0.8
     iterations: int = 12
+    # a frame's visible samples are computed again (every 4 iterations) only when its pose moved
+    # some of them more than this many pixels since they were (0: always)
+    visibility_reuse_px: float = 3.0
     # acceptance (edge support as in `common_correction`)
     # (0.3: tall facades at close range show few model edges, the Berlin drive calibrates right
     # at 0.35; noise is told apart by the null support below, 0.4 against 0.39)
@@ -286,11 +297,12 @@ def calibrate_sequence(
     A = {i: design(priors[i], v[k], w[k]) for k, i in enumerate(frames)}
     # frames whose prior view shows scene edges, spread over the sequence
     fo = options.fit
+    wfs = FrameWireframes(wireframe, camera)
     usable = []
     # long sequences: only an evenly spread subset is looked at
-    n_look = min(len(frames), 4 * options.max_frames)
+    n_look = min(len(frames), max(options.look_frames, options.max_frames))
     for i in (frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n_look).round().astype(int))):
-        vis = visible_samples(wireframe, camera, priors[i], raycaster, options.edges, 64)
+        vis = wfs.visible(i, priors[i], raycaster, options.edges, 64)
         if len(vis.points) >= fo.min_samples:
             usable.append(i)
     if len(usable) < options.min_supported_frames:
@@ -299,33 +311,33 @@ def calibrate_sequence(
                                          .round().astype(int))]
     images = {i: frame_source.load(i) for i in pick}
     P = _prior_information(accuracy, options)
-    start = joint_fit(camera, wireframe, raycaster, pick, images, {i: priors[i] for i in pick}, P[:6, :6],
+    start = joint_fit(camera, wfs, raycaster, pick, images, {i: priors[i] for i in pick}, P[:6, :6],
                       replace(options.joint, max_frames=options.max_frames), fo, options.edges,
                       options.features, options.prior)
     if not start.accepted:
         return replace(zero, reason=f"no common correction: {start.reason}", frames=tuple(pick))
     corrected = {i: apply_delta(priors[i], start.delta) for i in pick}
     margin = options.radius_start_px + fo.roi_margin_px
-    found = frame_edges(camera, wireframe, raycaster, pick, images, corrected, margin, fo, options.edges,
+    found = frame_edges(camera, wfs, raycaster, pick, images, corrected, margin, fo, options.edges,
                         options.features)
     data = [_Frame(i, priors[i], A[i], found[i].feats) for i in pick if i in found]
     theta0 = np.zeros(N_PARAMS)
     theta0[:6] = start.delta
-    cal = _adjust(camera, wireframe, raycaster, data, theta0, P, options)
+    cal = _adjust(camera, wfs, raycaster, data, theta0, P, options)
     if options.time_delay_sigma_s > 0 and options.delay_search_s > 0:
         # the delay shows at turns only, often beyond the fine stage's search radius: searched on
         # a grid at the adjusted parameters, then adjusted again from there when it moved
         theta1 = cal.theta.copy()
-        theta1[9] = _delay_search(camera, wireframe, raycaster, data, images, cal.theta, options)
+        theta1[9] = _delay_search(camera, wfs, raycaster, data, images, cal.theta, options)
         if abs(theta1[9] - cal.theta[9]) > options.delay_step_s:
-            again = _adjust(camera, wireframe, raycaster, data, theta1, P, options)
+            again = _adjust(camera, wfs, raycaster, data, theta1, P, options)
             if again.mean_support >= cal.mean_support:
                 cal = again
     return _accept(replace(cal, frames=tuple(f.index for f in data)), options)
 
 
 def _delay_search(
-    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame],
+    camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster, data: list[_Frame],
     images: Mapping[int, np.ndarray], theta0: np.ndarray, options: CalibrationOptions,
 ) -> float:
     """Time delay τ (s) maximising the oriented-gradient score (`oriented_gradient`) of the
@@ -337,7 +349,7 @@ def _delay_search(
     for f in data:
         col = f.A[:, 9]
         pose = apply_delta(f.prior, f.A @ theta0)
-        vis = visible_samples(wireframe, camera, pose, raycaster, options.edges, options.fit.max_samples)
+        vis = wireframe.visible(f.index, pose, raycaster, options.edges, options.fit.max_samples)
         if len(vis.points) < options.fit.min_samples:
             continue
         # the delay's effect on this frame, pixels per second, at the samples' median depth
@@ -350,13 +362,11 @@ def _delay_search(
         if px_per_s * options.delay_step_s < 0.5:
             continue
         nrm = image_normals(camera, pose, vis, uv)[ok]
-        cand = []
-        for tau in taus:
-            th = theta0.copy()
-            th[9] = tau
-            cand.append(apply_delta(f.prior, f.A @ th).project(camera, vis.points[ok])[0])
+        # every τ at once
+        R, C = delay_poses(f.prior, f.A, theta0, taus)
+        xc = np.einsum("tnk,tkj->tnj", vis.points[ok][None] - C[:, None], R)
         grad = downsampled_gradient(images[f.index], 2, 1.0)
-        total += oriented_gradient_score(grad, 2, np.stack(cand), nrm, vis.weight[ok])
+        total += oriented_gradient_score(grad, 2, camera.project(xc), nrm, vis.weight[ok])
         used += 1
     if used == 0:
         return 0.0
@@ -364,10 +374,11 @@ def _delay_search(
 
 
 def _adjust(
-    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame], theta0: np.ndarray,
+    camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster, data: list[_Frame], theta0: np.ndarray,
     P: np.ndarray, options: CalibrationOptions,
 ) -> SequenceCalibration:
-    """Gauss-Newton of θ and the per-frame deviations `ε_i` (Schur complement; module docstring)."""
+    """Gauss-Newton of θ `(10,)` and the per-frame deviations `ε_i` `(6,)` from `theta0` (Schur
+    complement; module docstring) -> the calibration, not yet tested for acceptance."""
     fo = options.fit
     theta = theta0.copy()
     eps = {f.index: np.zeros(6) for f in data}
@@ -379,8 +390,8 @@ def _adjust(
     for it in range(options.iterations):
         poses = {f.index: apply_delta(f.prior, f.A @ theta + eps[f.index]) for f in data}
         if it % 4 == 0:
-            vis = {f.index: visible_samples(wireframe, camera, poses[f.index], raycaster, options.edges,
-                                            fo.max_samples) for f in data}
+            vis = {f.index: wireframe.visible(f.index, poses[f.index], raycaster, options.edges,
+                                              fo.max_samples, options.visibility_reuse_px) for f in data}
         R_e = max(fo.edge_radius_min_px, options.radius_start_px * options.radius_decay**it)
         fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
         S = P.copy()
@@ -417,8 +428,11 @@ def _adjust(
     chi2, n = 0.0, 0
     for f in data:
         # the null support: how often clutter or noise alone gives "support" (white noise ~0.4)
-        got = edge_support(camera, wireframe, raycaster, apply_delta(f.prior, f.A @ theta + eps[f.index]),
-                           f.feats, options.edges, fo, options.prior.null_shift_px)
+        pose = apply_delta(f.prior, f.A @ theta + eps[f.index])
+        got = edge_support(camera, wireframe.wireframe, raycaster, pose, f.feats,
+                           options.edges, fo, options.prior.null_shift_px,
+                           visible=wireframe.visible(f.index, pose, raycaster, options.edges, fo.max_samples,
+                                                     options.visibility_reuse_px))
         if got is None:
             continue
         support[f.index], null[f.index], inl, _ = got

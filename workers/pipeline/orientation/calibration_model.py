@@ -7,8 +7,9 @@ camera frame, m; τ camera-to-INS delay, s). Frame i's correction `δ_i = (ω_i,
     ω_i  = ω − τ · Ω_i            (Ω_i: angular rate of the prior, camera frame, rad/s)
     dC_i = b + R_i · l − τ · v_i  (v_i: velocity of the prior centre, world, m/s)
 
-(exposure at `time − τ`, linearised). Used by `calibration` (estimation) and
-`mounting` (θ in the manifest's mounting terms).
+(exposure at `time − τ`, linearised). Used by `calibration` (estimation; `delay_poses`: one
+frame's poses for many candidate delays at once, its τ search) and `mounting` (θ in the
+manifest's mounting terms).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import so3_log
 
-__all__ = ["N_PARAMS", "design", "frame_motion"]
+__all__ = ["N_PARAMS", "delay_poses", "design", "frame_motion"]
 
 #: number of calibration parameters θ
 N_PARAMS = 10
@@ -56,3 +57,32 @@ def design(pose: Pose, velocity: np.ndarray, rate: np.ndarray) -> np.ndarray:
     A[3:6, 6:9] = pose.R_world_from_cam
     A[3:6, 9] = -velocity
     return A
+
+
+def delay_poses(
+    pose: Pose, A: np.ndarray, theta: np.ndarray, taus: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The corrected poses of one frame (prior `pose`, design `A` `(6, 10)`) for every time delay of
+    `taus` `(T,)` (seconds), the other parameters at `theta` `(10,)`: `δ(τ) = A θ + (τ − θ_τ) A[:, 9]`
+    applied as `geometry.pose_increments.apply_delta` does -> `R_world_from_cam` `(T, 3, 3)` and
+    centres `(T, 3)` (world, metres)."""
+    deltas = (A @ theta)[None] + (np.asarray(taus, dtype=np.float64) - theta[9])[:, None] * A[:, 9][None]
+    return pose.R_world_from_cam @ so3_exp_many(deltas[:, :3]), pose.center + deltas[:, 3:]
+
+
+def so3_exp_many(w: np.ndarray) -> np.ndarray:
+    """Rotation vectors `(T, 3)` (radians) -> rotation matrices `(T, 3, 3)` (Rodrigues, as
+    `pose_increments.so3_exp` does one by one).
+
+    >>> R = so3_exp_many(np.array([[0.0, 0.0, np.pi / 2], [0.0, 0.0, 0.0]]))
+    >>> bool(np.allclose(R[0] @ [1.0, 0.0, 0.0], [0, 1, 0]) and np.allclose(R[1], np.eye(3)))
+    True
+    """
+    t = np.linalg.norm(w, axis=1)
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    small = t < 1e-12
+    s = np.where(small, 1.0, np.sin(t) / np.where(small, 1.0, t))
+    c = np.where(small, 0.0, (1 - np.cos(t)) / np.where(small, 1.0, t) ** 2)
+    return np.eye(3)[None] + s[:, None, None] * K + c[:, None, None] * (K @ K)

@@ -20,14 +20,20 @@ Two stages:
    score of a sample is the image gradient component along the projected edge's normal minus the
    one across it, normalised per frame): correspondence-free and insensitive to the window rows the model does
    not contain (a plain distance transform is not). The best local maxima are candidates; so
-   are the best common world translations (a 3-D grid, refined on a finer one): at close range
-   a position bias shifts near and far facades differently, which no common image shift explains;
+   are the best common world translations (searched coarse to fine: the whole range on a grid
+   of at most 7 × 7 × 7 nodes on strongly smoothed frames, then finer grids around the best
+   only, `_translation_levels`): at close range a position bias shifts near and far facades
+   differently, which no common image shift explains;
 2. **fine**: Gauss-Newton of the six common parameters (plus per-frame deviations `ε_i` with
    a-priori σ `PriorOptions.frame_sigma_*`, `priors`, eliminated by a Schur complement) from every
    frame's edge-normal distances (1-D gradient search along each projected edge sample,
    `edge_observations.normal_equations`, Tukey weights) with a shrinking search radius, the prior
    a weighted observation. Each candidate is run on a few frames; the one with the highest edge
    support is refined on all.
+
+The visible edge samples of a frame come from its part of the scene wireframe
+(`edge_observations.FrameWireframes`: the same samples at a cost that follows what the frame
+sees), computed again only when its pose moved them more than `visibility_reuse_px`.
 """
 
 from __future__ import annotations
@@ -43,11 +49,11 @@ from workers.pipeline.geometry.pose_increments import apply_delta, bounded_step,
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.coarse import shift_pose
 from workers.pipeline.orientation.edge_observations import (
+    FrameWireframes,
     edge_support,
     frame_edges,
     image_normals,
     normal_equations,
-    visible_samples,
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
@@ -95,6 +101,10 @@ class JointOptions:
     iterations: int = 14
     verify_frames: int = 8
     verify_iterations: int = 10
+    # a frame's visible samples are computed again (every 4 iterations) only when its pose moved
+    # some of them more than this many pixels since they were (0: always; the sequence
+    # calibration, which verifies many candidates over many frames, takes 3)
+    visibility_reuse_px: float = 0.0
     # acceptance: mean edge support over the frames (share of samples with an image edge within
     # the frame fit's `support_px`), frames that must reach the frame fit's `min_support`, and
     # the largest plausible correction
@@ -139,7 +149,7 @@ class _Frame:
 
 def joint_fit(
     camera: Camera,
-    wireframe: Wireframe,
+    wireframe: Wireframe | FrameWireframes,
     raycaster: RayCaster,
     frames: Sequence[int],
     images: Mapping[int, np.ndarray],
@@ -154,8 +164,11 @@ def joint_fit(
     """One common correction of the priors of `frames` (see the module docstring).
 
     `prior_info` `(6, 6)`: information of the prior on the common `δ` (rad⁻², m⁻²);
-    `prior_options`: the a-priori σ of the per-frame deviations `ε_i`.
+    `prior_options`: the a-priori σ of the per-frame deviations `ε_i`; `wireframe`: the scene's,
+    or its parts per frame (`FrameWireframes`, which also keep each frame's last visibility).
     """
+    if not isinstance(wireframe, FrameWireframes):
+        wireframe = FrameWireframes(wireframe, camera)
     frames = list(frames)
     pick = [frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, min(len(frames), options.max_frames))
                                          .round().astype(int))] if frames else []
@@ -204,7 +217,7 @@ def _peaks(score: np.ndarray, n: int, sep: int) -> list[tuple[int, ...]]:
 
 
 def _coarse_candidates(
-    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame],
+    camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster, data: list[_Frame],
     images: Mapping[int, np.ndarray], options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
 ) -> list[np.ndarray]:
     """Common corrections `(6,)`, zero first: the best common image shifts (a rotation and a
@@ -216,7 +229,7 @@ def _coarse_candidates(
     samples = []
     pick = np.unique(np.linspace(0, len(data) - 1, min(len(data), options.coarse_frames)).round().astype(int))
     for fr in (data[k] for k in pick):
-        vis = visible_samples(wireframe, camera, fr.prior, raycaster, wide, options.coarse_samples)
+        vis = wireframe.visible(fr.index, fr.prior, raycaster, wide, options.coarse_samples)
         if len(vis.points) < fo.min_samples:
             continue
         uv, z = fr.prior.project(camera, vis.points)
@@ -247,38 +260,95 @@ def _coarse_candidates(
         shift = np.array([grid[ix], grid[iy]])
         if shift.any():
             out.append(pose_delta(ref_pose, shift_pose(camera, ref_pose, centre, shift, dmed, fo)))
-    # common world translations: coarse grid on strongly smoothed frames, then a finer one
-    levels = ((options.translation_max_m, options.translation_step_m, options.translation_downsample,
-               options.translation_sigma_px),
-              (options.translation_step_m, options.translation_step_m / 4, ds, options.coarse_sigma_px))
-    coarse_grads = {fr.index: downsampled_gradient(images[fr.index], levels[0][2], levels[0][3])
-                    for fr, *_ in samples}
-    centres = [np.zeros(3)]
-    for lev, (half, st, lds, _) in enumerate(levels):
-        found = []
-        for c0 in centres:
-            ax = np.arange(-half, half + 1e-9, st)
-            gx_, gy_, gz_ = np.meshgrid(ax, ax, ax, indexing="ij")
-            dcs = c0 + np.stack([gx_.ravel(), gy_.ravel(), gz_.ravel()], axis=1)
-            tot = np.zeros(len(dcs))
-            for fr, X, _, nrm, w, _ in samples:
-                Rt = fr.prior.R_world_from_cam.T
-                Xc = (X - fr.prior.center) @ Rt.T
-                uvk = camera.project(Xc[None] - (dcs @ Rt.T)[:, None])
-                grad = coarse_grads[fr.index] if lev == 0 else grads[fr.index]
-                tot += oriented_gradient_score(grad, lds, uvk, nrm, w)
-            shape = gx_.shape
-            n = options.translation_candidates if lev == 0 else 1
-            found += [(float(tot.reshape(shape)[k]), dcs[np.ravel_multi_index(k, shape)])
-                      for k in _peaks(tot.reshape(shape), n, 2)]
-        found.sort(key=lambda t: -t[0])
-        centres = [c for _, c in found]
+    # common world translations, coarse to fine (`_translation_levels`)
+    centres = _translation_search(camera, samples, images, grads, options)
     out += [np.concatenate([np.zeros(3), c]) for c in centres if np.any(c)]
     return out
 
 
+def _translation_levels(options: JointOptions) -> list[tuple[float, float, int, float, bool]]:
+    """The levels of the common world translation search: `(half width m, step m, downsampling,
+    smoothing σ in downsampled pixels, whole range)`.
+
+    The grid of `translation_step_m` up to ±`translation_max_m` is searched coarse to fine: the
+    whole range on a grid of at most 7 nodes per axis (the step doubled as often as needed, the
+    frames smoothed in proportion), then at every halved step down to `translation_step_m` the
+    nodes within two steps of that level's best (whole-range levels, `half width` the range),
+    then ±step around each of the best on the `coarse_*` frames to a quarter step. When the whole
+    range fits in 7 nodes per axis (the units' narrow search) this is the plain two-level search.
+    """
+    step = float(options.translation_step_m)
+    ds, sigma = int(options.translation_downsample), float(options.translation_sigma_px)
+    coarse = step
+    while options.translation_max_m / coarse > 3.0 + 1e-9:
+        coarse *= 2.0
+    half = float(options.translation_max_m)
+    levels = [(half, coarse, ds, sigma * coarse / step, True)]
+    while coarse > step + 1e-9:
+        coarse /= 2.0
+        levels.append((half, coarse, ds, sigma * coarse / step, True))
+    levels.append((step, step / 4.0, max(int(options.coarse_downsample), 1), options.coarse_sigma_px, False))
+    return levels
+
+
+def _translation_search(
+    camera: Camera, samples: list[tuple], images: Mapping[int, np.ndarray],
+    fine_grads: dict[int, tuple[np.ndarray, float]], options: JointOptions,
+) -> list[np.ndarray]:
+    """The best common world translations `(3,)` (metres, best first) of the coarse search's
+    samples (`_coarse_candidates`: frame, points, ..., normals, weights) by the oriented-gradient
+    score summed over frames, level by level (`_translation_levels`): on the whole range the
+    `translation_candidates` best local maxima two `translation_step_m` apart (twice as many
+    on coarser levels, one step apart), then the best around each. `fine_grads`: the frames'
+    gradients at (`coarse_downsample`, `coarse_sigma_px`)."""
+    cache = {(max(int(options.coarse_downsample), 1), float(options.coarse_sigma_px)): fine_grads}
+    keep, step = int(options.translation_candidates), float(options.translation_step_m)
+    centres = [np.zeros(3)]
+    for lev, (half, st, lds, sig, whole) in enumerate(_translation_levels(options)):
+        grads = cache.get((lds, float(sig)))
+        if grads is None:
+            grads = cache[(lds, float(sig))] = {fr.index: downsampled_gradient(images[fr.index], lds, sig)
+                                               for fr, *_ in samples}
+        if not whole:  # the best around each centre
+            ax = np.arange(-half, half + 1e-9, st)
+            offsets = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), axis=-1).reshape(-1, 3)
+            found = []
+            for c0 in centres:
+                tot = _translation_scores(camera, samples, grads, lds, c0 + offsets)
+                found.append((float(tot.max()), c0 + offsets[int(np.argmax(tot))]))
+            found.sort(key=lambda t: -t[0])
+            centres = [c for _, c in found]
+            continue
+        # whole range: every node at the first level, later those within a coarser step of the
+        # previous level's best; unevaluated nodes score -inf
+        r = round(half / st)
+        ax = np.arange(-r, r + 1) * st
+        nodes = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), axis=-1).reshape(-1, 3)
+        near = np.ones(len(nodes), bool) if lev == 0 else \
+            np.any([np.all(np.abs(nodes - c) <= 2 * st + 1e-9, axis=1) for c in centres], axis=0)
+        score = np.full(len(nodes), -np.inf)
+        score[near] = _translation_scores(camera, samples, grads, lds, nodes[near])
+        last = st <= step + 1e-9
+        n, sep = (keep, 2 if last else 1) if last else (2 * keep, 1)
+        shape = (len(ax),) * 3
+        centres = [nodes[np.ravel_multi_index(k, shape)] for k in _peaks(score.reshape(shape), n, sep)]
+    return centres
+
+
+def _translation_scores(camera: Camera, samples: list[tuple], grads: dict[int, tuple[np.ndarray, float]],
+                        ds: int, dcs: np.ndarray) -> np.ndarray:
+    """Oriented-gradient score `(K,)` summed over the frames of `samples` for common world
+    translations `dcs` `(K, 3)` (metres) of every camera, on `grads` (downsampled by `ds`)."""
+    tot = np.zeros(len(dcs))
+    for fr, X, _, nrm, w, _ in samples:
+        R = fr.prior.R_world_from_cam
+        uvk = camera.project(((X - fr.prior.center) @ R)[None] - (dcs @ R)[:, None])
+        tot += oriented_gradient_score(grads[fr.index], ds, uvk, nrm, w)
+    return tot
+
+
 def _fine(
-    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, data: list[_Frame], delta0: np.ndarray,
+    camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster, data: list[_Frame], delta0: np.ndarray,
     prior_info: np.ndarray, iterations: int, options: JointOptions, fo: FrameFitOptions, eo: EdgeOptions,
     prior_options: PriorOptions, radius_start: float | None = None,
 ) -> JointFit:
@@ -297,8 +367,8 @@ def _fine(
     for it in range(iterations):
         poses = {fr.index: apply_delta(fr.prior, x[fr.index]) for fr in data}
         if it % 4 == 0:
-            vis = {fr.index: visible_samples(wireframe, camera, poses[fr.index], raycaster, eo,
-                                             fo.max_samples) for fr in data}
+            vis = {fr.index: wireframe.visible(fr.index, poses[fr.index], raycaster, eo, fo.max_samples,
+                                               options.visibility_reuse_px) for fr in data}
         R_e = max(fo.edge_radius_min_px, r0 * options.radius_decay**it)
         fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
         Hc = prior_info.copy()
@@ -339,7 +409,10 @@ def _fine(
     support: dict[int, float] = {}
     chi2, n = 0.0, 0
     for fr in data:
-        got = edge_support(camera, wireframe, raycaster, apply_delta(fr.prior, x[fr.index]), fr.feats, eo, fo)
+        pose = apply_delta(fr.prior, x[fr.index])
+        got = edge_support(camera, wireframe.wireframe, raycaster, pose, fr.feats, eo, fo,
+                           visible=wireframe.visible(fr.index, pose, raycaster, eo, fo.max_samples,
+                                                     options.visibility_reuse_px))
         if got is None:
             continue
         support[fr.index], _, inl, _ = got

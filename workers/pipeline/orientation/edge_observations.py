@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
-from workers.pipeline.geometry.pose_increments import pose_delta, project_jacobian
+from workers.pipeline.geometry.pose_increments import pose_delta, project_jacobian, so3_log
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.features import (
     FeatureError,
@@ -38,14 +38,18 @@ from workers.pipeline.orientation.wireframe import EdgeOptions, VisibleWireframe
 
 __all__ = [
     "FrameEdges",
+    "FrameWireframes",
+    "cull_wireframe",
     "edge_search",
     "edge_support",
     "frame_box",
     "frame_edges",
+    "frustum_tangents",
     "image_normals",
     "match_corners",
     "matched_edges",
     "normal_equations",
+    "thinned",
     "tukey",
     "visible_samples",
 ]
@@ -125,7 +129,11 @@ def visible_samples(
     max_samples: int,
 ) -> VisibleWireframe:
     """`visible_wireframe` thinned to at most `max_samples` edge samples (evenly, per edge order)."""
-    vis = visible_wireframe(wireframe, camera, pose, raycaster, edge_options)
+    return thinned(visible_wireframe(wireframe, camera, pose, raycaster, edge_options), max_samples)
+
+
+def thinned(vis: VisibleWireframe, max_samples: int) -> VisibleWireframe:
+    """`vis` with at most `max_samples` edge samples (evenly, per edge order)."""
     n = len(vis.points)
     if n <= max_samples:
         return vis
@@ -200,6 +208,7 @@ def edge_support(
     edge_options: EdgeOptions,
     options: FrameFitOptions,
     null_shift_px: float = 0.0,
+    visible: VisibleWireframe | None = None,
 ) -> tuple[float, float, np.ndarray, int] | None:
     """How well the wireframe projected with `pose` meets the frame's edges, at the final edge
     search radius: (support: class-weighted share of visible edge samples with an image edge
@@ -207,8 +216,11 @@ def edge_support(
     off their edges along the image normal, edge clutter and noise alone, 0 when
     `null_shift_px` is 0; inlier edge offsets `(N,)` px; matched edges: edges with at least half
     of their visible samples within `support_px`). None with fewer than `min_samples` visible
-    samples."""
-    v = visible_samples(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
+    samples. `visible`: the visible wireframe of `pose` when known (thinned here)."""
+    if visible is None:
+        v = visible_samples(wireframe, camera, pose, raycaster, edge_options, options.max_samples)
+    else:
+        v = thinned(visible, options.max_samples)
     if len(v.points) < options.min_samples:
         return None
     _, _, w, off, found, *_ = normal_equations(camera, pose, v, feats, np.zeros((0, 2)),
@@ -245,15 +257,19 @@ class FrameEdges:
     vis: VisibleWireframe
 
 
-def frame_edges(camera: Camera, wireframe: Wireframe, raycaster: RayCaster, frames: Sequence[int],
-                images: Mapping[int, np.ndarray], poses: Mapping[int, Pose], margin: float,
-                options: FrameFitOptions, edge_options: EdgeOptions, feature_options: FeatureOptions,
-                ) -> dict[int, FrameEdges]:
+def frame_edges(camera: Camera, wireframe: Wireframe | FrameWireframes, raycaster: RayCaster,
+                frames: Sequence[int], images: Mapping[int, np.ndarray], poses: Mapping[int, Pose],
+                margin: float, options: FrameFitOptions, edge_options: EdgeOptions,
+                feature_options: FeatureOptions) -> dict[int, FrameEdges]:
     """Image gradients in a box `margin` px around the projected wireframe, and the visible
-    samples, of every frame that sees at least `options.min_samples` of them."""
+    samples, of every frame that sees at least `options.min_samples` of them (`wireframe`: the
+    scene's, or its parts per frame)."""
     out = {}
     for f in frames:
-        vis = visible_samples(wireframe, camera, poses[f], raycaster, edge_options, options.max_samples)
+        if isinstance(wireframe, FrameWireframes):
+            vis = wireframe.visible(f, poses[f], raycaster, edge_options, options.max_samples)
+        else:
+            vis = visible_samples(wireframe, camera, poses[f], raycaster, edge_options, options.max_samples)
         if len(vis.points) < options.min_samples:
             continue
         roi = frame_box(camera, poses[f], vis, margin)
@@ -265,3 +281,146 @@ def frame_edges(camera: Camera, wireframe: Wireframe, raycaster: RayCaster, fram
             continue
         out[f] = FrameEdges(feats, vis)
     return out
+
+
+def frustum_tangents(camera: Camera, margin_px: float = 0.0) -> tuple[float, float]:
+    """Largest `|x/z|` and `|y/z|` (undistorted, camera frame) of a pixel inside the frame grown by
+    `margin_px` on every side: the half-angle tangents of the field of view. Beyond the fold of
+    the distortion model (`Camera.max_radius2`) nothing projects, which bounds both."""
+    n = 64
+    lo, hi_u, hi_v = -margin_px, camera.width - 1 + margin_px, camera.height - 1 + margin_px
+    t = np.linspace(0.0, 1.0, n)
+    u = lo + t * (hi_u - lo)
+    v = lo + t * (hi_v - lo)
+    border = np.concatenate([np.stack([u, np.full(n, lo)], 1), np.stack([u, np.full(n, hi_v)], 1),
+                             np.stack([np.full(n, lo), v], 1), np.stack([np.full(n, hi_u), v], 1)])
+    ab = camera.normalized_from_pixel(border)
+    fold = float(np.sqrt(camera.max_radius2))
+    if not np.all(np.isfinite(ab)):
+        return fold, fold
+    return min(float(np.max(np.abs(ab[:, 0]))), fold), min(float(np.max(np.abs(ab[:, 1]))), fold)
+
+
+def cull_wireframe(wireframe: Wireframe, pose: Pose, tangents: tuple[float, float], margin_m: float,
+                   margin_deg: float, ends: tuple[np.ndarray, np.ndarray] | None = None,
+                   ) -> tuple[Wireframe, np.ndarray]:
+    """The edges of `wireframe` that a camera at any pose within `margin_m` (world metres) and
+    `margin_deg` (rotation angle) of `pose` may see inside the field of view of half-angle
+    tangents `tangents` (`frustum_tangents`): those whose segment meets the frustum of `pose`,
+    each half-angle widened for the rotation, each side plane moved `margin_m` outwards.
+
+    Returns the part and the indices `(E',)` of its edges in `wireframe.edges`. The part keeps
+    the vertices, corners and vertex offset directions of `wireframe`: its `VisibleWireframe` at
+    such poses equals the whole one's, `edge` indexing the part's edges. `ends`: the edges' end
+    points `(E, 3)` twice (world), when known."""
+    R = pose.R_world_from_cam
+    if ends is None:
+        ends = (wireframe.vertices[wireframe.edges[:, 0]], wireframe.vertices[wireframe.edges[:, 1]])
+    to_a, to_b = ends[0] - pose.center, ends[1] - pose.center
+    # safety against rounding and the sampled border of `frustum_tangents`
+    tangents = (tangents[0] * 1.02 + 1e-3, tangents[1] * 1.02 + 1e-3)
+    margin_m = margin_m + 1e-6
+    a, b = to_a @ R, to_b @ R
+    d = np.radians(margin_deg)
+    diag = np.arctan(np.hypot(*tangents))
+    # directions within `d` of the frustum lie inside each side plane turned outwards by `wide`
+    wide = np.arctan(np.sin(d) / max(np.cos(min(diag + d, np.pi / 2 - 1e-3)), 1e-3))
+    t_lo, t_hi = np.zeros(len(a)), np.ones(len(a))
+    for axis, tan in ((0, tangents[0]), (1, tangents[1])):
+        half = np.arctan(tan) + wide
+        if not np.isfinite(half) or half >= np.radians(89.0):
+            continue
+        s, c = np.sin(half), np.cos(half)
+        for sign in (1.0, -1.0):
+            fa = a[:, 2] * s - sign * a[:, axis] * c + margin_m  # >= 0: inside the grown plane
+            fb = b[:, 2] * s - sign * b[:, axis] * c + margin_m
+            df = fb - fa
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tc = -fa / df
+            rising, falling = df > 0, df < 0
+            t_lo = np.where(rising, np.maximum(t_lo, tc), t_lo)
+            t_hi = np.where(falling, np.minimum(t_hi, tc), t_hi)
+            t_hi = np.where((df == 0) & (fa < 0), -1.0, t_hi)
+    # at least one polygon of the edge may face a camera within `margin_m` (a polygon's normal
+    # `(E, 2, 3)` is constant along its edge; a missing second polygon has a zero normal)
+    nrm = wireframe.edge_normals
+    va = -np.einsum("ekj,ej->ek", nrm, to_a)
+    vb = -np.einsum("ekj,ej->ek", nrm, to_b)
+    facing = np.any((np.maximum(va, vb) > -margin_m) & (np.abs(nrm).sum(axis=2) > 0), axis=1)
+    keep = (t_lo <= t_hi) & facing
+    sub = Wireframe(building_id=wireframe.building_id, vertices=wireframe.vertices,
+                    edges=wireframe.edges[keep], edge_class=wireframe.edge_class[keep],
+                    edge_weight=wireframe.edge_weight[keep], edge_normals=wireframe.edge_normals[keep],
+                    corners=wireframe.corners)
+    sub.__dict__["vertex_outward"] = wireframe.vertex_outward  # of all the vertex's edges
+    return sub, np.flatnonzero(keep)
+
+
+class FrameWireframes:
+    """Per frame, the part of a scene wireframe (`cull_wireframe`) its camera may see from poses
+    within `margin_m` (metres) and `margin_deg` (degrees) of the pose it was cut for, cut again
+    around the pose asked for when that one strayed further, and the frame's last visible
+    samples. `visible` equals `visible_samples` on the whole wireframe (the same samples in the
+    same order, `edge` indexing `wireframe.edges`), at a cost that follows what the frame sees,
+    not the size of the scene. `cull=False`: the whole wireframe always."""
+
+    def __init__(self, wireframe: Wireframe, camera: Camera, margin_m: float = 2.0, margin_deg: float = 2.0,
+                 cull: bool = True) -> None:
+        self.wireframe = wireframe
+        self.camera = camera
+        self.margin_m = float(margin_m)
+        self.margin_deg = float(margin_deg)
+        self.cull = cull
+        self._tangents: dict[float, tuple[float, float]] = {}
+        self._ends = (wireframe.vertices[wireframe.edges[:, 0]], wireframe.vertices[wireframe.edges[:, 1]])
+        self._parts: dict[tuple[int, float], tuple[Pose, Wireframe, np.ndarray]] = {}
+        self._seen: dict[tuple[int, EdgeOptions], tuple[Pose, VisibleWireframe]] = {}
+
+    def _part(self, frame: int, pose: Pose, edge_options: EdgeOptions) -> tuple[Wireframe, np.ndarray]:
+        """The wireframe to see frame `frame` from `pose` with (its part, or the whole) and the
+        indices of its edges in `wireframe.edges`, for visibility with `edge_options` (a negative
+        `image_margin_px` asks for samples outside the frame: the part grows with it)."""
+        if not self.cull:
+            return self.wireframe, np.arange(len(self.wireframe.edges))
+        px = max(-float(edge_options.image_margin_px), 0.0)
+        got = self._parts.get((frame, px))
+        if got is not None:
+            ref, part, kept = got
+            turn = so3_log(ref.R_world_from_cam.T @ pose.R_world_from_cam)
+            if ref is pose or (np.linalg.norm(pose.center - ref.center) <= self.margin_m and
+                               np.degrees(np.linalg.norm(turn)) <= self.margin_deg):
+                return part, kept
+        if px not in self._tangents:
+            self._tangents[px] = frustum_tangents(self.camera, px)
+        part, kept = cull_wireframe(self.wireframe, pose, self._tangents[px], self.margin_m, self.margin_deg,
+                                    self._ends)
+        self._parts[(frame, px)] = (pose, part, kept)
+        return part, kept
+
+    def visible(self, frame: int, pose: Pose, raycaster: RayCaster, edge_options: EdgeOptions,
+                max_samples: int, reuse_px: float = 0.0) -> VisibleWireframe:
+        """`visible_samples` of frame `frame` at `pose` (on its part); the frame's last visible
+        wireframe again when `pose` is the pose it was computed at (the same rotation and centre),
+        or moves none of its samples more than `reuse_px` pixels in the image (> 0: hidden-edge
+        removal and sample spacing are kept while a fit converges)."""
+        got = self._seen.get((frame, edge_options))
+        if got is not None and _same_pose(got[0], pose):
+            return thinned(got[1], max_samples)
+        if got is not None and reuse_px > 0 and len(got[1].points):
+            old = thinned(got[1], max_samples)
+            uv0, _ = got[0].project(self.camera, old.points)
+            uv1, _ = pose.project(self.camera, old.points)
+            if np.all(np.abs(uv1 - uv0) <= reuse_px):  # NaN (behind the camera): recomputed
+                return old
+        part, kept = self._part(frame, pose, edge_options)
+        vis = visible_wireframe(part, self.camera, pose, raycaster, edge_options)
+        vis = replace(vis, edge=kept[vis.edge])
+        self._seen[(frame, edge_options)] = (pose, vis)
+        return thinned(vis, max_samples)
+
+
+def _same_pose(a: Pose, b: Pose) -> bool:
+    """True when `a` and `b` have the same rotation and centre (bit for bit)."""
+    if a is b:
+        return True
+    return np.array_equal(a.center, b.center) and np.array_equal(a.R_world_from_cam, b.R_world_from_cam)
