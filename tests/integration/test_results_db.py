@@ -37,6 +37,7 @@ from tests.unit.texture_scene import box_building, look_at
 from workers.job import RunOptions, ingest
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import ParameterizedTexture
+from workers.pipeline.geometry.manifest import Accuracy
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.transform import CrsTransform
 from workers.pipeline.results import BuildingResult
@@ -80,7 +81,10 @@ def scene(tmp_path_factory):
     buildings = [box_building("B1", 0, 0, 12, 8, 7, holes=True), box_building("B2", 16, 0, 24, 6, 5)]
     buildings.append(box_building("FAR", 500, 500, 505, 505, 5))  # never seen
     poses = [look_at([-3 + 3.0 * k, -15, 1.6], [0 + 3.0 * k, 0, 3.5]) for k in range(9)]
-    gml, pkg = write_scene(folder, buildings, CAM, poses)
+    # the poses are exact, and the manifest says so: frames the stand-in refiner leaves at their
+    # priors still texture (`UnitOptions.max_prior_px`)
+    exact = Accuracy(np.full(3, 0.01), np.full(3, 0.01))
+    gml, pkg = write_scene(folder, buildings, CAM, poses, accuracy=exact)
     model_gml = folder / f"{MODEL}.gml"  # the model's name is the file's stem
     shutil.copy(gml, model_gml)
     return folder, model_gml, pkg

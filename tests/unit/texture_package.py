@@ -13,7 +13,7 @@ from tests.unit.texture_scene import render
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.geometry.georef import attitude_from_ned_from_body
-from workers.pipeline.geometry.manifest import FrameRecord, Mounting, Radiometry, SequenceManifest
+from workers.pipeline.geometry.manifest import Accuracy, FrameRecord, Mounting, Radiometry, SequenceManifest
 from workers.pipeline.geometry.pose import Pose
 
 R_WN = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])
@@ -22,9 +22,15 @@ SRS = "EPSG:25832"
 
 
 def write_scene(
-    folder: Path, buildings: list[Building], camera: Camera, poses: list[Pose], edge_m: float = 0.15
+    folder: Path,
+    buildings: list[Building],
+    camera: Camera,
+    poses: list[Pose],
+    edge_m: float = 0.15,
+    accuracy: Accuracy | None = None,
 ) -> tuple[Path, Path]:
-    """Write `folder/city.gml` and the package `folder/seq`; returns both paths."""
+    """Write `folder/city.gml` and the package `folder/seq` (the manifest states `accuracy`, the
+    a-priori σ of its poses, when given); returns both paths."""
     gml = folder / "city.gml"
     write_citygml(gml, buildings, srs_name=SRS)
     records = []
@@ -46,6 +52,7 @@ def write_scene(
         radiometry=Radiometry("K", 0.01, 0.0),
         mounting=Mounting(camera_to_body=M),
         frames=tuple(records),
+        accuracy=accuracy,
     )
     pkg = write_package(folder / "seq", manifest, (render(camera, p, buildings, edge_m) for p in poses))
     return gml, pkg

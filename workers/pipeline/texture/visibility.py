@@ -371,14 +371,17 @@ class OcclusionScene:
         each sample grown by `margin`) from the projection centre of `pose` through the scene."""
         grid = self._rays[step]
         H, W = grid.shape[:2]
-        need = np.zeros(H * W, dtype=np.uint8)
-        lin = _top_left(uv / step, H, W, margin)
-        for off in (0, 1, W, W + 1):
-            need[lin + off] = 1
-        if margin > 0:
-            k = 2 * margin + 1
-            need = cv2.dilate(need.reshape(H, W), np.ones((k, k), np.uint8)).ravel()
-        pix = np.flatnonzero(need)
+        if len(uv) * (2 + 2 * margin) ** 2 >= H * W // 2:  # most of the grid: cast it all
+            pix = np.arange(H * W)
+        else:
+            need = np.zeros(H * W, dtype=np.uint8)
+            lin = _top_left(uv / step, H, W, margin)
+            for off in (0, 1, W, W + 1):
+                need[lin + off] = 1
+            if margin > 0:
+                k = 2 * margin + 1
+                need = cv2.dilate(need.reshape(H, W), np.ones((k, k), np.uint8)).ravel()
+            pix = np.flatnonzero(need)
         t = np.full(H * W, np.inf, np.float32)
         poly = np.full(H * W, -1, np.int32)
         if len(pix):
