@@ -27,13 +27,22 @@ two grids differ in density). Prints JSON, per scene and platform:
 - `by_class`: errors by texel class (interior, boundary: within 3 px of a polygon-id change in
   the best frame or never clean, grazing > 70°, unseen; roof, wall, other) for both;
 - `speed`: the product's texture-stage frames/s per worker process (`decode + texture` unit time
-  per building-frame pair, one process) and wall times.
+  per building-frame pair, one process) and wall times (the product's wall time includes its
+  split-half check where that runs);
+- `split_half` (drives; flights with `--split-half-flights`): the product run with `--split-half`
+  (its `report.json` `split_half` block: even and odd halves of each building's frames textured
+  apart, per-tile shift by phase correlation) and the reference texturer's halves by the same
+  rule, compared by the product's own `split_half_agreement` on the reference's grid
+  (`tests/reference/split_half.py`): tiles, agree share, median tile shift in texels and metres
+  for both, `ratio_m` (product ÷ reference median shift in metres; the two grids' texels may
+  differ) and `ratio_texels`; bars: product median shift ≤ 0.3 texel and `ratio_m` ≤ 1.2.
 Then `errors`: one scene with the default GNSS/INS errors and refinement on (drive and flight):
 product RMSE with errors ÷ product RMSE with true poses (bar ≤ 1.5), on all surfaces it textured.
 
 Usage: `python bench/texture.py [--scenes nrw,berlin,potsdam] [--platform drive,flight]
-[--frames 60,24] [--errors-scene nrw|none] [--quick] [--out DIR]`. `--quick`: the NRW tile only,
-30 drive and 12 flight frames (a few minutes); the default run takes ~10–15 min on 2 cores.
+[--frames 60,24] [--errors-scene nrw|none] [--split-half-flights] [--quick] [--out DIR]`.
+`--quick`: the NRW tile only, 30 drive and 12 flight frames (a few minutes); the default run takes
+~10–15 min on 2 cores.
 """
 
 from __future__ import annotations
@@ -52,6 +61,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.reference.compare import SCENES, CaseSpec, make_case, run_product, run_reference
 from tests.reference.evaluate import compare_case
+from tests.reference.split_half import run_reference_split_half, split_half_figures
+from workers.pipeline.texture.split_half import SplitHalfOptions
 
 
 def bars(fig: dict[str, Any]) -> dict[str, bool | None]:
@@ -72,18 +83,24 @@ def bars(fig: dict[str, Any]) -> dict[str, bool | None]:
             fig["observed_area_per_surface_ratio"]["median"], 0.95
         ),
         "visible_untextured_all_with_reason": fig["visible_untextured"]["without_reason"] == 0,
+        **(fig["split_half"]["bars"] if "split_half" in fig else {}),
     }
 
 
 def run_case(
-    spec: CaseSpec, root: Path, refine: bool, options: dict[str, Any] | None = None
-) -> dict[str, Any]:
+    spec: CaseSpec, root: Path, refine: bool, options: dict[str, Any] | None = None,
+    split_half: bool = False,
+) -> dict[str, Any]:  # fmt: skip
     """Synthesize, run the product (with `options` overrides) and the reference, compare; the
-    case's JSON block."""
+    case's JSON block. `split_half`: the product runs with `--split-half` (its outputs stay the
+    same) and the block gets `split_half` (`split_half_block`)."""
     case = make_case(spec, root)
-    run = run_product(case, root / spec.name / "results", refine=refine, options=options)
+    opts = {**(options or {}), "split_half": True} if split_half else options
+    run = run_product(case, root / spec.name / "results", refine=refine, options=opts)
     polys, refs, ref_s = run_reference(case)
     fig = compare_case(case, run.out_dir, run.report, polys, refs)
+    if split_half:
+        fig["split_half"] = split_half_block(case, run.report)
     fig["speed"] = {
         "texture_frames_per_s_per_process": round(run.frames_per_s, 1) if run.frames_per_s else None,
         "building_frame_pairs": run.pairs,
@@ -111,6 +128,21 @@ def run_case(
     return fig
 
 
+def split_half_block(case: Any, report: dict[str, Any]) -> dict[str, Any]:
+    """The product's split-half figures (`report["split_half"]`) against the reference's on the
+    same buildings with the same thresholds (`tests.reference.split_half`), and timings."""
+    prod = report.get("split_half") or {}
+    if not prod.get("run"):
+        return {"error": "the product's report.json has no split_half block"}
+    ref = run_reference_split_half(
+        case, [b["id"] for b in prod.get("buildings", [])], SplitHalfOptions(**prod["options"])
+    )
+    fig = split_half_figures(prod, ref)
+    fig["product_split_half_s"] = round(float(report.get("timings_s", {}).get("split_half", 0.0)), 2)
+    fig["reference_split_half_s"] = ref["seconds"]
+    return fig
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="nrw,berlin,potsdam", help=f"comma list of {sorted(SCENES)}")
@@ -120,6 +152,7 @@ def main() -> None:
     ap.add_argument("--cluster", type=int, default=4)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--quick", action="store_true", help="NRW only, 30 drive / 12 flight frames")
+    ap.add_argument("--split-half-flights", action="store_true", help="split-half check on flights too")
     ap.add_argument("--out", type=Path, default=None, help="keep the packages and results here")
     ap.add_argument(
         "--options",
@@ -141,7 +174,8 @@ def main() -> None:
     for scene in a.scenes.split(","):
         for plat in platforms:
             spec = CaseSpec(scene, plat, frames[plat], seed=a.seed, cluster=a.cluster)  # type: ignore[arg-type]
-            fig = run_case(spec, root, refine=False, options=a.options)
+            sh = plat == "drive" or a.split_half_flights
+            fig = run_case(spec, root, refine=False, options=a.options, split_half=sh)
             fig["bars"] = bars(fig)
             out["cases"][spec.name] = fig
             print(f"# {spec.name}: done at {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)

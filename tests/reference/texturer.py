@@ -21,6 +21,10 @@ Fusion per texel: only the views about as sharp as its sharpest one (footprint o
 sharp near one); of those, the observations more than `outlier_sigmas` robust sigmas (1.4826 ·
 MAD, at least `sigma_floor_k`) from the median are dropped, the rest averaged with their weights.
 
+Split halves (`reference_half_textures`): the same, with each frame's observations of a surface
+going to the even or the odd half of the frames that see the surface's building (the product's
+`--split-half` rule); both halves of a surface share its grid.
+
 Independent of the product: no import of `workers.pipeline` texture, ray casting, camera
 projection or units code; the z-buffer, the grids and the projection are this package's own
 (OpenCV and shapely underneath).
@@ -58,6 +62,9 @@ class ReferenceOptions:
         sigma_floor_k: smallest robust sigma, kelvin (two or three agreeing frames have MAD ~ 0).
         coplanar_ok: pixels of a coplanar polygon of the same building and class count as clean.
         supersample: area samples per real pixel side in the z-buffer (edge pixels become MIXED).
+        sees_min_pixels: split halves only (`reference_half_textures`): a frame sees a building
+            when at least this many of its pixel centres show the building (128: about what the
+            product's planning needs, two hits of rays through every 8th pixel).
     """
 
     texels_per_m: float = 10.0
@@ -71,6 +78,7 @@ class ReferenceOptions:
     sigma_floor_k: float = 0.1
     coplanar_ok: bool = False
     supersample: int = 3
+    sees_min_pixels: int = 128
 
 
 @dataclass(eq=False)
@@ -281,27 +289,88 @@ def reference_textures(
     (and the ground plane at `ground_z`) occludes. Returns polygon id -> `RefTexture` for every
     surface that some frame's view frustum reaches from its front side (observed or not); the
     others are seen by no frame."""
+    accs, _ = _accumulate(polygons, surfaces, camera, poses, load_frame, options, ground_z, halves=False)
+    return {a[0].grid.polygon.polygon_id: _fuse(a[0], options) for a in accs.values()}
+
+
+def reference_half_textures(
+    polygons: list[ScenePolygon],
+    surfaces: Collection[str] | None,
+    camera: RefCamera,
+    poses: Sequence[tuple[np.ndarray, np.ndarray]],
+    load_frame: FrameLoader,
+    options: ReferenceOptions = ReferenceOptions(),
+    ground_z: float | None = None,
+) -> tuple[dict[str, tuple[RefTexture, RefTexture]], dict[str, list[int]]]:
+    """As `reference_textures`, but each surface textured twice, from the even and from the odd
+    half of its building's frames. Returns polygon id -> `(even, odd)` textures on one `RefGrid`,
+    and building id -> the frames that see it (recording order; even half = positions 0, 2, ...)
+    for the buildings of the wanted surfaces.
+
+    The halves follow the product's split-half rule (`citytherm run --split-half`): alternate
+    frames of those that see the building, in recording order (the 1st, 3rd, ... and the 2nd,
+    4th, ...). "Sees the building" is the reference's own: at least `options.sees_min_pixels`
+    pixel centres of the frame's z-buffer show the building's (top-level building, parts
+    included) polygons. A frame that does not see the building adds nothing to its surfaces.
+    """
+    accs, frames = _accumulate(polygons, surfaces, camera, poses, load_frame, options, ground_z, halves=True)
+    tex = {a[0].grid.polygon.polygon_id: (_fuse(a[0], options), _fuse(a[1], options)) for a in accs.values()}
+    wanted = {polygons[i].building_id for i in accs}
+    return tex, {b: f for b, f in frames.items() if b in wanted}
+
+
+def _new_acc(g: RefGrid) -> _Acc:
+    """An empty accumulator on grid `g`."""
+    n = len(g.rows)
+    return _Acc(g, [], np.zeros(n, bool), np.zeros(n), np.full((n, 3), np.nan))
+
+
+def _accumulate(
+    polygons: list[ScenePolygon],
+    surfaces: Collection[str] | None,
+    camera: RefCamera,
+    poses: Sequence[tuple[np.ndarray, np.ndarray]],
+    load_frame: FrameLoader,
+    options: ReferenceOptions,
+    ground_z: float | None,
+    halves: bool,
+) -> tuple[dict[int, tuple[_Acc, ...]], dict[str, list[int]]]:
+    """The observations of every wanted surface a frame may see (see `reference_textures`):
+    polygon index -> one accumulator, or (`halves`) two, the even and the odd half of the
+    frames that see the polygon's building (`reference_half_textures`); and (`halves`) building
+    id -> the frames rendered that see it, recording order (empty without `halves`)."""
     zbuf = ZBuffer(camera, polygons, ground_z)
     group = coplanar_groups(polygons) if options.coplanar_ok else np.arange(len(polygons))
     wanted = np.array([surfaces is None or p.polygon_id in surfaces for p in polygons], bool)
-    accs: dict[int, _Acc | None] = {}  # grids are laid when a frame first may see the surface
+    building_of = np.array([p.building_id for p in polygons], dtype=object)
+    # halves: a frame that may see any polygon of a wanted surface's building is rendered, so that
+    # every frame that sees the building is counted, whichever of its polygons are wanted
+    render_for = np.isin(building_of, list(set(building_of[wanted]))) if halves else wanted
+    seen_by: dict[str, list[int]] = {}  # building id -> frames so far that see it (halves)
+    accs: dict[int, tuple[_Acc, ...] | None] = {}  # grids are laid when a frame first may see the surface
     for k, (R_wc, C) in enumerate(poses):
         R_wc, C = np.asarray(R_wc, np.float64), np.asarray(C, np.float64)
-        cand = [int(i) for i in zbuf.candidates(R_wc, C) if wanted[i]]
-        cand = [i for i in cand if polygons[i].normal @ C > polygons[i].offset]  # camera in front
+        near = [int(i) for i in zbuf.candidates(R_wc, C) if render_for[i]]
+        near = [i for i in near if polygons[i].normal @ C > polygons[i].offset]  # camera in front
+        cand = [i for i in near if wanted[i]]
         for i in cand:
             if i not in accs:
                 g = ref_grid(polygons[i], options.texels_per_m)
-                n = 0 if g is None else len(g.rows)
-                accs[i] = (
-                    None
-                    if g is None
-                    else _Acc(g, [], np.zeros(n, bool), np.zeros(n), np.full((n, 3), np.nan))
-                )
+                accs[i] = None if g is None else tuple(_new_acc(g) for _ in range(2 if halves else 1))
         cand = [i for i in cand if accs[i] is not None]
-        if not cand:
+        if not (cand or (halves and near)):
             continue
         buf = zbuf.render(R_wc, C)
+        half: dict[str, int] = {}
+        if halves:
+            ids, counts = np.unique(buf.centre, return_counts=True)
+            pixels: dict[str, int] = {}
+            for i, c in zip(ids[ids >= 0], counts[ids >= 0], strict=True):
+                pixels[building_of[i]] = pixels.get(building_of[i], 0) + int(c)
+            for b in sorted(b for b, c in pixels.items() if c >= options.sees_min_pixels):
+                seen = seen_by.setdefault(b, [])
+                half[b] = len(seen) % 2
+                seen.append(k)
         frame: list[np.ndarray] = []
 
         def load(k: int = k, frame: list[np.ndarray] = frame) -> np.ndarray:
@@ -310,5 +379,9 @@ def reference_textures(
             return frame[0]
 
         for i in cand:
-            _observe(accs[i], k, buf, load, camera, R_wc, C, group, options)  # type: ignore[arg-type]
-    return {a.grid.polygon.polygon_id: _fuse(a, options) for a in accs.values() if a is not None}
+            b = polygons[i].building_id
+            if halves and b not in half:
+                continue  # the frame does not see the building (as the product: not in its unit)
+            acc = accs[i][half[b] if halves else 0]  # type: ignore[index]
+            _observe(acc, k, buf, load, camera, R_wc, C, group, options)
+    return {i: a for i, a in accs.items() if a is not None}, seen_by

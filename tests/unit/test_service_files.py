@@ -71,7 +71,7 @@ def test_celery_settings_follow_the_design() -> None:
 
 def test_ingest_buildings_with_a_source_that_leaves_far_buildings_out_equals_ingest(tmp_path: Path) -> None:
     cam = Camera(240, 192, 220.0, 220.0, 119.5, 95.5)
-    buildings = [box_building("B1", 0, 0, 12, 8, 7), box_building("FAR", 500, 500, 505, 505, 5)]
+    buildings = [box_building("B1", 0, 0, 12, 8, 7), box_building("FAR", 2000, 2000, 2005, 2005, 5)]
     poses = [look_at([-3 + 3.0 * k, -15, 1.6], [0 + 3.0 * k, 0, 3.5]) for k in range(4)]
     gml, pkg = write_scene(tmp_path, buildings, cam, poses)
     options = RunOptions.build(refine=False, buildings=("B1",))

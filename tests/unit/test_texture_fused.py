@@ -31,7 +31,7 @@ def test_one_bad_observation_among_several_does_not_decide_a_texel() -> None:
     truth = 290.0
     obs = list(truth + 0.05 * rng.standard_normal(4))
     obs[1] = truth + 9.0  # a mixed pixel: sky or a neighbour in front
-    tex = SurfaceTexture.empty((1, 1))
+    tex = SurfaceTexture.empty((1, 1), FusedOptions(keep=4, blend_ratio=2.0))
     _merge_all(tex, obs, [0.05, 0.04, 0.05, 0.06])  # the bad one even has the best resolution
     assert abs(float(tex.value[0, 0]) - truth) < 0.1
     assert int(tex.count[0, 0]) == 3

@@ -4,8 +4,11 @@ the product through its shipped path (`workers.run.run_job`, no refinement).
 
 Bars (on the surfaces both texture, each texturer evaluated at its own texel centres against
 the truth): product RMSE ≤ 1.2 × the reference's; no surface textured that the reference sees
-cleanly in no frame; surfaces textured ≥ 0.95 × the reference's. Scene building and evaluation
-live in `tests/reference` (shared with `bench/texture.py`).
+cleanly in no frame; surfaces textured ≥ 0.95 × the reference's. On the drive, the split-half
+check (`citytherm run --split-half`; the reference's halves by the same rule, both compared by the
+product's `split_half_agreement`): product median tile shift ≤ 0.3 texel and ≤ 1.2 × the
+reference's (in metres). Scene building and evaluation live in `tests/reference` (shared with
+`bench/texture.py`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,13 @@ import pytest
 
 from tests.reference.compare import CaseSpec, make_case, run_product, run_reference
 from tests.reference.evaluate import compare_case
+from tests.reference.split_half import (
+    MAX_RATIO,
+    MAX_SHIFT_TEXELS,
+    run_reference_split_half,
+    split_half_figures,
+)
+from workers.pipeline.texture.split_half import SplitHalfOptions
 
 pytestmark = pytest.mark.slow
 
@@ -25,21 +35,42 @@ CASES = {
     "drive": CaseSpec("nrw", "drive", 34, seed=1, cluster=4),
     "flight": CaseSpec("nrw", "flight", 15, seed=1, cluster=4),
 }
+#: cases whose product run includes the split-half check (its outputs stay the same)
+SPLIT_HALF = {"drive"}
 _FIGURES: dict[str, dict[str, Any]] = {}
+
+
+def _case_figures(name: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The comparison figures of case `name`, computed once per module; with `split_half`
+    (`tests.reference.split_half.split_half_figures`) for the cases in `SPLIT_HALF`."""
+    if name not in _FIGURES:
+        root: Path = tmp_path_factory.mktemp(f"vsref-{name}")
+        case = make_case(CASES[name], root)
+        sh = name in SPLIT_HALF
+        run = run_product(case, root / "results", refine=False, options={"split_half": True} if sh else None)
+        polys, refs, _ = run_reference(case)
+        fig = compare_case(case, run.out_dir, run.report, polys, refs)
+        fig["case"] = name
+        if sh:
+            prod = run.report["split_half"]
+            ref = run_reference_split_half(
+                case, [b["id"] for b in prod["buildings"]], SplitHalfOptions(**prod["options"])
+            )
+            fig["split_half"] = split_half_figures(prod, ref)
+        _FIGURES[name] = fig
+    return _FIGURES[name]
 
 
 @pytest.fixture(scope="module", params=sorted(CASES))
 def figures(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """The comparison figures of one case (computed once per module and platform)."""
-    name = request.param
-    if name not in _FIGURES:
-        root: Path = tmp_path_factory.mktemp(f"vsref-{name}")
-        case = make_case(CASES[name], root)
-        run = run_product(case, root / "results", refine=False)
-        polys, refs, _ = run_reference(case)
-        _FIGURES[name] = compare_case(case, run.out_dir, run.report, polys, refs)
-        _FIGURES[name]["case"] = name
-    return _FIGURES[name]
+    return _case_figures(request.param, tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def drive_split_half(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The drive's split-half figures, product against reference (`split_half_figures`)."""
+    return _case_figures("drive", tmp_path_factory)["split_half"]
 
 
 def _brief(fig: dict[str, Any]) -> str:
@@ -72,3 +103,36 @@ def test_no_surface_textured_from_mixed_pixels_only(figures: dict[str, Any]) -> 
 
 def test_surfaces_textured_as_many_as_reference(figures: dict[str, Any]) -> None:
     assert figures["surfaces_textured"]["ratio"] >= 0.95, _brief(figures)
+
+
+def test_split_half_is_measured_on_both_texturers(drive_split_half: dict[str, Any]) -> None:
+    """The yardstick holds: both texturers' halves give tiles to compare, and the reference, with
+    true poses and the same halves, agrees with itself within the bar."""
+    fig = drive_split_half
+    assert fig["product"]["tiles"] > 0 and fig["reference"]["tiles"] > 0, json.dumps(fig)
+    assert fig["reference"]["median_shift_texels"] <= MAX_SHIFT_TEXELS, json.dumps(fig)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="issue 15 open: on the 34-frame NRW drive the product's halves disagree by a median "
+    "0.43 texel (0.043 m) over 11 tiles, the reference's by 0.25 texel on the same surfaces",
+)
+def test_split_half_median_shift_within_0_3_texel(drive_split_half: dict[str, Any]) -> None:
+    fig = drive_split_half
+    assert fig["product"]["median_shift_texels"] is not None, json.dumps(fig)
+    assert fig["product"]["median_shift_texels"] <= MAX_SHIFT_TEXELS, json.dumps(fig)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="issue 15 open: product ÷ reference median split-half tile shift 1.74 (metres) on the "
+    "34-frame NRW drive; the excess sits on a few walls (one with 4 tiles at 2.2 texels, the "
+    "reference 0.29)",
+)
+def test_split_half_median_shift_within_1_2_of_reference(drive_split_half: dict[str, Any]) -> None:
+    fig = drive_split_half
+    assert fig["ratio_m"] is not None, json.dumps(fig)
+    assert fig["ratio_m"] <= MAX_RATIO, json.dumps(fig)

@@ -28,8 +28,9 @@ class FusedOptions:
 
     Attributes:
         keep: observations kept per texel (the best by local resolution).
-        blend_ratio: observations coarser than this × the texel's best resolution are kept for
-            the count but do not enter the value (they would blur it).
+        blend_ratio: observations coarser than this × the texel's best resolution are kept but
+            do not enter the value (they would blur it; 1.25 measured against 2: NRW drive RMSE
+            ÷ reference 1.004 / 1.009, split-half median tile shift 0.33 / 1.12 texel).
         noise: expected σ of one observation (sensor noise, residual registration), in the
             radiometry unit (kelvin).
         outlier_sigmas: an observation farther than this many `noise` from the median of the
@@ -38,7 +39,7 @@ class FusedOptions:
     """
 
     keep: int = 4
-    blend_ratio: float = 2.0
+    blend_ratio: float = 1.25
     noise: float = 0.15
     outlier_sigmas: float = 3.0
 
