@@ -54,8 +54,10 @@ class VisibilityOptions:
             bilinear sampling reads: the optics blur a silhouette (sky, roof edge, occluder) into
             its neighbours.
         buffer_step_px: the occlusion test casts every `buffer_step_px`-th pixel in both
-            directions (2: a quarter of the rays); a texel's test then reads the 2x2 cast pixels
-            around it (spanning its bilinear pixels and the blur margin up to the step).
+            directions (3: a ninth of the rays); a texel's test then reads the 2x2 cast pixels
+            around it, and near a silhouette every pixel of its footprint (`visible`). 3 against
+            2: the same textures on the NRW bench drive and flight, a close-range drive past
+            Berlin facades 41 against 33 frames/s.
         pixel_area: near a silhouette, the footprint's pixels must see the texel's plane over
             their whole area, tested by rays through their corners as well as their centres (a
             pixel half on a neighbour is a mixed pixel even when its centre is not).
@@ -73,7 +75,7 @@ class VisibilityOptions:
     depth_tolerance_m: float = 0.3
     depth_tolerance_rel: float = 0.02
     blur_margin_px: int = 1
-    buffer_step_px: int = 2
+    buffer_step_px: int = 3
     pixel_area: bool = True
     coplanar_deg: float = 1.0
     coplanar_m: float = 0.05
@@ -283,19 +285,23 @@ def consistent_samples(
     polygon_group: np.ndarray,
     options: VisibilityOptions,
     margin: int,
+    require: str = "all",
 ) -> np.ndarray:
     """`(N,)` bool: the cast-grid elements around `uv (N, 2)` — the 2x2 around the sample grown by
-    `margin` elements — all see the texel's own plane: their first hit is a polygon of the
+    `margin` elements — all (`require="all"`; `"any"`: at least one) see the texel's own plane:
+    their first hit is a polygon of the
     texel's plane `group` (see `plane_groups`) at the texel's `distance (N,)` within
     `depth_tolerance_m + depth_tolerance_rel · distance`. `polygon_group (P + 1,)` maps polygon
     index -> plane group, its last entry (index -1) is -1."""
     W = buffer.width
     lin = _top_left(uv / buffer.step, buffer.height, W, margin)
     tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
-    ok = np.ones(len(uv), dtype=bool)
+    every = require == "all"
+    ok = np.full(len(uv), every, dtype=bool)
     for off in _offsets(W, margin):
         j = lin + off
-        ok &= (polygon_group[buffer.polygon[j]] == group) & (np.abs(buffer.t[j] - distance) <= tol)
+        own = (polygon_group[buffer.polygon[j]] == group) & (np.abs(buffer.t[j] - distance) <= tol)
+        ok = (ok & own) if every else (ok | own)
     return ok
 
 
@@ -445,8 +451,8 @@ class OcclusionScene:
         Returns per surface `(N,)` bool: the pixels bilinear sampling reads and `blur_margin_px`
         around them see the texel's own plane. With `buffer_step_px > 1` a coarse grid decides
         first: samples whose coarse neighbourhood (2x2 grown by one element) is all own plane
-        pass, those whose 2x2 is not fail, and only those in between (near a silhouette) are
-        tested at full resolution.
+        pass, those whose coarse 2x2 shows no own plane at all fail, and those in between (near
+        a silhouette) are tested at full resolution.
         """
         o = self.options
         if not samples:
@@ -465,8 +471,9 @@ class OcclusionScene:
             core = consistent_samples(coarse, uv, d, g, self.polygon_group, o, 0)
             ring = core.copy()
             ring[core] = consistent_samples(coarse, uv[core], d[core], g, self.polygon_group, o, 1)
+            some = consistent_samples(coarse, uv, d, g, self.polygon_group, o, 0, require="any")
             out.append(ring)
-            near.append(np.nonzero(core & ~ring)[0])
+            near.append(np.nonzero(some & ~ring)[0])
         if sum(len(n) for n in near):
             fine = self.buffer(
                 pose,
