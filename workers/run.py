@@ -11,12 +11,10 @@ the job's memory stays small. Scripts that run pools need the `if __name__ == "_
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +38,7 @@ from workers.job import (
 )
 from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.units import BuildingUnit, Refiner
+from workers.pool import pool_context
 from workers.split_half import split_half_report
 
 
@@ -72,27 +71,6 @@ class RunSummary:
         return sum(s.texels_total for r in self.results for s in r.surfaces)
 
 
-#: thread-pool sizes of numerical libraries (OpenBLAS, OpenMP, TBB users such as Open3D, OpenCV)
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "TBB_NUM_THREADS")
-
-
-def _mp_context(workers: int) -> multiprocessing.context.BaseContext:
-    """`forkserver` where available (no fork of a process that may hold Open3D threads).
-
-    Worker processes get thread pools of `cpu_count // workers` threads (set in the environment
-    the server starts with), so that `workers` processes do not oversubscribe the cores."""
-    threads = str(max(1, (os.cpu_count() or 1) // max(1, workers)))
-    for var in _THREAD_VARS:
-        os.environ.setdefault(var, threads)
-    methods = multiprocessing.get_all_start_methods()
-    if "forkserver" not in methods:
-        return multiprocessing.get_context("spawn")
-    ctx = multiprocessing.get_context("forkserver")
-    # workers fork from a server that has already imported the pipeline and Open3D (~1 s each)
-    ctx.set_forkserver_preload(["workers.pipeline.units", "open3d"])
-    return ctx
-
-
 def run_units(
     units: Sequence[BuildingUnit], workers: int, refiner: Refiner | None = None
 ) -> Iterator[BuildingResult | UnitFailure]:
@@ -103,7 +81,7 @@ def run_units(
         for u in units:
             yield run_unit(u, refiner)
         return
-    with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=_mp_context(workers)) as pool:
+    with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=pool_context(workers)) as pool:
         # largest units first: better load balance
         order = sorted(range(len(units)), key=lambda k: -len(units[k].frames))
         futures = [pool.submit(run_unit, units[k], refiner) for k in order]
@@ -113,17 +91,7 @@ def run_units(
 
 def without_pixels(r: BuildingResult) -> BuildingResult:
     """The same result with empty tile pixels (already written): names kept, memory freed."""
-    tiles = tuple(TextureTile(t.name, np.zeros((0, 0), np.uint16)) for t in r.tiles)
-    return BuildingResult(
-        building_id=r.building_id,
-        appearance=r.appearance,
-        tiles=tiles,
-        radiometry=r.radiometry,
-        surfaces=r.surfaces,
-        poses=r.poses,
-        anomalies=r.anomalies,
-        timings_s=r.timings_s,
-    )
+    return replace(r, tiles=tuple(TextureTile(t.name, np.zeros((0, 0), np.uint16)) for t in r.tiles))
 
 
 def run_job(

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import multiprocessing
 import time
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -41,6 +40,7 @@ from workers.pipeline.texture.split_half import (
 )
 from workers.pipeline.texture.texel import TexelGrid
 from workers.pipeline.units import BuildingUnit, UnitTextures, texture_unit, unit_raycaster
+from workers.pool import pool_context
 
 #: how the frames are split, as `report.json` states it
 HALVES = "alternate frames of each building's frames, recording order: even 1st, 3rd, ...; odd 2nd, 4th, ..."
@@ -88,11 +88,9 @@ def textured_poses(unit: BuildingUnit, result: BuildingResult | None) -> dict[in
     return poses
 
 
-def half_unit(unit: BuildingUnit, parity: int, poses: Mapping[int, Pose]) -> BuildingUnit:
-    """`unit` restricted to its even (`parity` 0) or odd (1) frames (alternate frames of
-    `unit.frames`), with the given `poses` as its priors, refinement off and no sequence
-    orientation: it textures exactly with those poses."""
-    keep = [k for k in range(len(unit.frames)) if k % 2 == parity]
+def _with_frames(unit: BuildingUnit, keep: Sequence[int], poses: Mapping[int, Pose]) -> BuildingUnit:
+    """`unit` with only its frames at positions `keep`, the given `poses` as their priors,
+    refinement off and no sequence orientation: it textures exactly with those poses."""
     frames = tuple(unit.frames[k] for k in keep)
     return replace(
         unit,
@@ -102,6 +100,12 @@ def half_unit(unit: BuildingUnit, parity: int, poses: Mapping[int, Pose]) -> Bui
         options=replace(unit.options, refine=None),
         sequence=None,
     )
+
+
+def half_unit(unit: BuildingUnit, parity: int, poses: Mapping[int, Pose]) -> BuildingUnit:
+    """`unit` restricted to its even (`parity` 0) or odd (1) frames (alternate frames of
+    `unit.frames`), with the given `poses` (see `_with_frames`)."""
+    return _with_frames(unit, range(parity, len(unit.frames), 2), poses)
 
 
 def _textures(unit: BuildingUnit, caster: RayCaster) -> UnitTextures:
@@ -205,10 +209,15 @@ def compare_halves(
 def split_half_unit(
     unit: BuildingUnit, result: BuildingResult | None, options: SplitHalfOptions | None = None
 ) -> UnitSplitHalf:
-    """`compare_halves` with the poses the unit textured with (`textured_poses`); an exception
-    is returned as `error` (one building must not sink the check)."""
+    """`compare_halves` with the frames and poses the unit textured with (`textured_poses`,
+    without the frames it withheld); an exception is returned as `error` (one building must not
+    sink the check)."""
     try:
-        return compare_halves(unit, textured_poses(unit, result), options=options)
+        poses = textured_poses(unit, result)
+        withheld = set(result.frames_withheld) if result is not None else set()
+        if withheld:
+            unit = _with_frames(unit, [k for k, f in enumerate(unit.frames) if f not in withheld], poses)
+        return compare_halves(unit, poses, options=options)
     except Exception as exc:  # reported in report.json
         n = len(unit.frames)
         return UnitSplitHalf(unit.building.id, (n + 1) // 2, n // 2, error=f"{type(exc).__name__}: {exc}")
@@ -247,16 +256,13 @@ def job_block(checks: Sequence[UnitSplitHalf], options: SplitHalfOptions) -> dic
 def _run_pool(
     pairs: Sequence[tuple[BuildingUnit, BuildingResult | None]], workers: int, options: SplitHalfOptions
 ) -> Iterator[tuple[int, UnitSplitHalf]]:
-    """`split_half_unit` over `pairs`, in this process (`workers <= 1`) or a process pool
-    (forkserver where available, as `workers.run`): `(index into pairs, check)` in completion
-    order."""
+    """`split_half_unit` over `pairs`, in this process (`workers <= 1`) or a process pool (the
+    units' pool context, `workers.pool`): `(index into pairs, check)` in completion order."""
     if workers <= 1 or len(pairs) <= 1:
         for k, (unit, result) in enumerate(pairs):
             yield k, split_half_unit(unit, result, options)
         return
-    methods = multiprocessing.get_all_start_methods()
-    ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-    with ProcessPoolExecutor(max_workers=min(workers, len(pairs)), mp_context=ctx) as pool:
+    with ProcessPoolExecutor(max_workers=min(workers, len(pairs)), mp_context=pool_context(workers)) as pool:
         futures = {pool.submit(split_half_unit, u, r, options): k for k, (u, r) in enumerate(pairs)}
         for fut in as_completed(futures):
             yield futures[fut], fut.result()

@@ -32,7 +32,7 @@ from workers.pipeline.orientation.building import CoregisterOptions, refine_buil
 from workers.pipeline.results import BuildingResult, FramePose, RefinedPose, SurfaceStats
 from workers.pipeline.texture.atlas import AtlasOptions, build_atlas
 from workers.pipeline.texture.fusion import FusionOptions, SurfaceTexels, SurfaceTexture, texture_frame
-from workers.pipeline.texture.sight import surface_resolution, surface_sight
+from workers.pipeline.texture.sight import SurfaceSight, surface_resolution, surface_sight
 from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
 from workers.pipeline.texture.visibility import OcclusionScene, VisibilityOptions, buried_texels
 
@@ -254,6 +254,19 @@ class UnitTextures:
     reasons: dict[str, str] = field(default_factory=dict)
 
 
+def _reason_untextured(
+    sight: SurfaceSight, n_withheld: int, has_grid: bool, max_view_angle_deg: float
+) -> str:
+    """Why a polygon would get no texel (recorded only when it gets none, `surface_stats`)."""
+    if sight.seen:
+        if has_grid:
+            return "no texel passed the clean-pixel test (too small or thin for the sampling footprint)"
+        return "polygon degenerate or smaller than min_area_m2"
+    if n_withheld:
+        return f"{n_withheld} frames withheld: poses left at priors too uncertain to texture from"
+    return sight.reason_unseen(max_view_angle_deg)
+
+
 def texture_unit(
     unit: BuildingUnit, poses: Mapping[int, Pose], raycaster: RayCaster | None, withheld: Sequence[int] = ()
 ) -> UnitTextures:
@@ -277,14 +290,9 @@ def texture_unit(
         if opts.texel.follow_frames:
             r = surface_resolution(r, sight.best_resolution_m, opts.texel.oversample)
         grid = texel_grid(poly, part_id, replace(opts.texel, resolution_px_per_m=r))
-        reason = sight.reason_unseen(opts.visibility.max_view_angle_deg)
-        if not sight.seen and skip:
-            reason = f"{len(skip)} frames withheld: poses left at priors too uncertain to texture from"
-        if sight.seen:
-            reason = "no texel passed the clean-pixel test (too small or thin for the sampling footprint)"
+        reason = _reason_untextured(sight, len(skip), grid is not None, opts.visibility.max_view_angle_deg)
         if grid is None:
-            why = "polygon degenerate or smaller than min_area_m2" if sight.seen else reason
-            empty.append(SurfaceStats(poly.id, part_id, poly.surface_class, 0, 0, reason=why))
+            empty.append(SurfaceStats(poly.id, part_id, poly.surface_class, 0, 0, reason=reason))
             continue
         polygons.append(poly)
         grids.append(grid)

@@ -105,7 +105,8 @@ def local_resolution(
     camera: Camera, pose: Pose, points: np.ndarray, s_axis: np.ndarray, t_axis: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local resolution of a frame on a surface at `points (N, 3)` -> `(res_s, res_t)` `(N,)` each,
-    metres on the surface per image pixel along the surface axes `s_axis`, `t_axis` `(3,)`.
+    metres on the surface per image pixel along the surface axes `s_axis`, `t_axis`: `(3,)` for
+    one surface, or `(N, 3)`, each point's own.
 
     From the Jacobian of the pinhole projection (distortion changes it by a few per cent at the
     image corners and is ignored here: the figure ranks observations, it does not map them).
@@ -116,9 +117,9 @@ def local_resolution(
     b = xc[:, 1] / z
     out = []
     for axis in (s_axis, t_axis):
-        e = pose.R_world_from_cam.T @ axis  # direction in the camera frame
-        du = camera.fx * (e[0] - a * e[2]) / z
-        dv = camera.fy * (e[1] - b * e[2]) / z
+        e = np.asarray(axis, dtype=np.float64) @ pose.R_world_from_cam  # direction, camera frame
+        du = camera.fx * (e[..., 0] - a * e[..., 2]) / z
+        dv = camera.fy * (e[..., 1] - b * e[..., 2]) / z
         out.append(1.0 / np.maximum(np.hypot(du, dv), 1e-12))
     return out[0], out[1]
 

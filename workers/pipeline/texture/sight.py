@@ -28,6 +28,7 @@ from workers.pipeline.geometry.citymodel import Polygon
 from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.texture.fusion import local_resolution
 from workers.pipeline.texture.visibility import VisibilityOptions, frustum_extent
 
 #: largest number of exterior vertices sampled per polygon
@@ -122,7 +123,7 @@ def surface_sight(
             counts[np.unique(owner[m]), j] += 1
         if vis.any():
             idx = np.flatnonzero(vis)
-            res = _resolution(camera, pose, pts[idx], s_ax[idx], t_ax[idx])
+            res = np.maximum(*local_resolution(camera, pose, pts[idx], s_ax[idx], t_ax[idx]))
             np.minimum.at(best, owner[idx], res)
     return [SurfaceSight(float(best[k]), *(int(x) for x in counts[k])) for k in range(n_poly)]
 
@@ -147,24 +148,6 @@ def _stack_samples(
         return z, np.zeros(0, np.intp), z, z, z
     f = np.concatenate(frames)
     return np.concatenate(pts), np.concatenate(owner), f[:, 0], f[:, 1], f[:, 2]
-
-
-def _resolution(
-    camera: Camera, pose: Pose, points: np.ndarray, s_axis: np.ndarray, t_axis: np.ndarray
-) -> np.ndarray:
-    """`(N,)` local resolution (m/px, the coarser of the two axes) at `points (N, 3)` with their
-    own surface axes `(N, 3)`: `fusion.local_resolution` per point."""
-    R = pose.R_world_from_cam
-    xc = (points - pose.center) @ R
-    z = xc[:, 2]
-    a, b = xc[:, 0] / z, xc[:, 1] / z
-    out = []
-    for axis in (s_axis, t_axis):
-        e = axis @ R  # directions in the camera frame
-        du = camera.fx * (e[:, 0] - a * e[:, 2]) / z
-        dv = camera.fy * (e[:, 1] - b * e[:, 2]) / z
-        out.append(1.0 / np.maximum(np.hypot(du, dv), 1e-12))
-    return np.maximum(out[0], out[1])
 
 
 def surface_resolution(requested_px_per_m: float, best_resolution_m: float, oversample: float) -> float:

@@ -295,12 +295,29 @@ def consistent_samples(
     index -> plane group, its last entry (index -1) is -1."""
     W = buffer.width
     lin = _top_left(uv / buffer.step, buffer.height, W, margin)
+    return _own_plane(buffer.t, buffer.polygon, lin, _offsets(W, margin), distance, group, polygon_group,
+                      options, every=require == "all")  # fmt: skip
+
+
+def _own_plane(
+    t: np.ndarray,
+    polygon: np.ndarray,
+    lin: np.ndarray,
+    offsets: np.ndarray,
+    distance: np.ndarray,
+    group: int,
+    polygon_group: np.ndarray,
+    options: VisibilityOptions,
+    every: bool = True,
+) -> np.ndarray:
+    """`(N,)` bool: the cast rays at flat indices `lin (N,) + offsets` (first-hit distance `t`,
+    polygon index `polygon`, flat) all (`every`; else at least one) hit the plane `group` at
+    `distance (N,)` within the depth tolerance."""
     tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
-    every = require == "all"
-    ok = np.full(len(uv), every, dtype=bool)
-    for off in _offsets(W, margin):
+    ok = np.full(len(lin), every, dtype=bool)
+    for off in offsets:
         j = lin + off
-        own = (polygon_group[buffer.polygon[j]] == group) & (np.abs(buffer.t[j] - distance) <= tol)
+        own = (polygon_group[polygon[j]] == group) & (np.abs(t[j] - distance) <= tol)
         ok = (ok & own) if every else (ok | own)
     return ok
 
@@ -388,26 +405,32 @@ class OcclusionScene:
                 k = 2 * margin + 1
                 need = cv2.dilate(need.reshape(H, W), np.ones((k, k), np.uint8)).ravel()
             pix = np.flatnonzero(need)
-        t = np.full(H * W, np.inf, np.float32)
-        poly = np.full(H * W, -1, np.int32)
+        t, poly = self._cast(pose, grid, pix)
+        return HitBuffer(width=W, height=H, step=step, t=t, polygon=poly)
+
+    def _cast(self, pose: Pose, grid: np.ndarray, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cast the rays of `grid (H, W, 3)` (camera frame) at flat indices `pix` from the projection
+        centre of `pose` -> `(t (H·W,) float32, polygon (H·W,) int32)`, inf / -1 where not cast."""
+        n = grid.shape[0] * grid.shape[1]
+        t = np.full(n, np.inf, np.float32)
+        poly = np.full(n, -1, np.int32)
         if len(pix):
             rays = np.empty((len(pix), 6), np.float32)
             rays[:, :3] = (pose.center - self.mesh.origin).astype(np.float32)
             rays[:, 3:] = grid.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
             t[pix], poly[pix] = self._raycaster.cast_local(rays)
-        return HitBuffer(width=W, height=H, step=step, t=t, polygon=poly)
+        return t, poly
 
-    def _corner_index(self, uv: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray, int]:
+    def _corner_index(self, uv: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
         """Flat index `(N,)` of the top-left corner of each sample's footprint (the 2x2 bilinear
-        pixels grown by `margin`), the flat offsets of its `(3 + 2·margin)²` corners, and the
-        corner grid's width."""
+        pixels grown by `margin`) and the flat offsets of its `(3 + 2·margin)²` corners."""
         assert self._corners is not None
         H1, W1 = self._corners.shape[:2]
         n = 3 + 2 * margin
         c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp) - margin, 0, max(W1 - n, 0))
         r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp) - margin, 0, max(H1 - n, 0))
         k = np.arange(n)
-        return r0 * W1 + c0, (k[:, None] * W1 + k[None, :]).ravel(), W1
+        return r0 * W1 + c0, (k[:, None] * W1 + k[None, :]).ravel()
 
     def pure_footprint(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]],
                        margin: int) -> list[np.ndarray]:
@@ -417,30 +440,16 @@ class OcclusionScene:
         if self._corners is None or not samples:
             return [np.ones(len(uv), bool) for uv, _, _ in samples]
         H1, W1 = self._corners.shape[:2]
-        all_uv = np.concatenate([uv for uv, _, _ in samples])
-        lin, offs, _ = self._corner_index(all_uv, margin)
         need = np.zeros(H1 * W1, np.bool_)
-        for off in offs:
-            need[lin + off] = True
-        pix = np.flatnonzero(need)
-        t = np.full(H1 * W1, np.inf, np.float32)
-        poly = np.full(H1 * W1, -1, np.int32)
-        if len(pix):
-            rays = np.empty((len(pix), 6), np.float32)
-            rays[:, :3] = (pose.center - self.mesh.origin).astype(np.float32)
-            rays[:, 3:] = self._corners.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
-            t[pix], poly[pix] = self._raycaster.cast_local(rays)
-        o = self.options
-        out = []
-        for uv, d, g in samples:
-            lin, offs, _ = self._corner_index(uv, margin)
-            tol = o.depth_tolerance_m + o.depth_tolerance_rel * d
-            ok = np.ones(len(uv), bool)
+        for uv, _, _ in samples:
+            lin, offs = self._corner_index(uv, margin)
             for off in offs:
-                j = lin + off
-                ok &= (self.polygon_group[poly[j]] == g) & (np.abs(t[j] - d) <= tol)
-            out.append(ok)
-        return out
+                need[lin + off] = True
+        t, poly = self._cast(pose, self._corners, np.flatnonzero(need))
+        return [
+            _own_plane(t, poly, *self._corner_index(uv, margin), d, g, self.polygon_group, self.options)
+            for uv, d, g in samples
+        ]
 
     def visible(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]]) -> list[np.ndarray]:
         """Occlusion and silhouette test of a frame's texel samples, per surface.
