@@ -8,7 +8,7 @@ Redis db 15 at `CITYTHERM_TEST_REDIS` (default `redis://127.0.0.1:6379/15`).
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import psycopg
 import pytest
@@ -400,3 +400,20 @@ def ready_api_model(engine: object, name: str) -> tuple[int, int]:
             {"n": name, "m": summary.model_id},
         ).scalar_one()
     return int(mid), int(summary.model_id)
+
+
+# -- the API server of the API tests (test_api.py, test_api_uploads.py) ------------------------
+#: largest upload of the API tests' server
+MAX_UPLOAD = 3_000_000  # bytes: the Berlin model (0.9 MB) and the small package fit, 3.5 MB does not
+
+
+@pytest.fixture(scope="module")
+def make_api(api_server_factory) -> Callable[..., ApiServer]:
+    """Start a server: uploads up to `MAX_UPLOAD` bytes, other settings as given."""
+    return lambda **settings: api_server_factory(max_upload_bytes=MAX_UPLOAD, **settings)
+
+
+@pytest.fixture(scope="module")
+def api(make_api) -> ApiServer:
+    """The API: reads need a key."""
+    return make_api()
