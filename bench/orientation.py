@@ -22,11 +22,16 @@ Prints JSON with, per platform (`drive`, `flight`; synthetic sequences of `cityt
    share within 1 px).
 
 The poses come from the stages `citytherm run` ships (`workers.job`: calibrate, orient when
-the calibration is accepted and the platform is close-range, plan; then each unit's refinement,
+the platform is close-range (calibration accepted or not), plan; then each unit's refinement,
 `units.refine_unit`), on frames held in memory; only the pairs evaluated (frames whose true pose
 sees the building) are the bench's own choice.
 
-Usage: `python bench/orientation.py [--frames 40] [--buildings 3] [--seed 1] [--texture]`.
+6. with `--quick` only the sequence orientation figures of `bench/orientation_sequence.py`: the
+   calibrate and orient stages on a close-range sequence of one facade (priors 0.5 m / 1° off
+   per frame plus a common error) and a drive with the default error model: frames below 1 px
+   before / after, per-frame error median and 90th percentile, stage CPU and wall times.
+
+Usage: `python bench/orientation.py [--frames 40] [--buildings 3] [--seed 1] [--texture] [--quick]`.
 """
 
 from __future__ import annotations
@@ -74,8 +79,13 @@ def offset_pose(pose: Pose, d_m: float, d_deg: float) -> Pose:
 def scene(platform: str, frames: int, buildings: int, seed: int, errors: bool):
     res = synthesize(
         procedural_block(max(buildings + 3, 6), seed=seed),
-        SynthOptions(platform=platform, n_frames=frames, seed=seed, buildings=buildings,
-                     errors=ErrorOptions(enabled=errors)),
+        SynthOptions(
+            platform=platform,
+            n_frames=frames,
+            seed=seed,
+            buildings=buildings,
+            errors=ErrorOptions(enabled=errors),
+        ),
     )
     imgs = [res.frames.load(i) for i in range(frames)]
     return res, imgs
@@ -88,9 +98,15 @@ def ingested(res, imgs, priors: list[Pose], options: job.RunOptions) -> job.Inge
     reach = min(options.plan.max_distance_m, options.unit.visibility.max_distance_m)
     near, _ = near_buildings(res.buildings, priors, reach)
     return job.Ingested(
-        city_gml=Path("<synthetic>"), package_dir=Path("<memory>"), header=ModelHeader("2.0"), manifest=m,
-        frames=MemoryFrames(imgs), priors=tuple(priors), buildings=tuple(near),
-        n_model_buildings=len(res.buildings), radiometry=m.radiometry,
+        city_gml=Path("<synthetic>"),
+        package_dir=Path("<memory>"),
+        header=ModelHeader("2.0"),
+        manifest=m,
+        frames=MemoryFrames(imgs),
+        priors=tuple(priors),
+        buildings=tuple(near),
+        n_model_buildings=len(res.buildings),
+        radiometry=m.radiometry,
     )
 
 
@@ -107,8 +123,11 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions) -> dict:
     t0 = time.perf_counter()
     calibrated = job.calibrate(ing, opts, caster)
     seconds["calibrate"] = time.perf_counter() - t0
-    calib = {"run": True, **calibrated.calibration.to_dict(),
-             "ms_per_frame": round(1000 * seconds["calibrate"] / n, 1)}
+    calib = {
+        "run": True,
+        **calibrated.calibration.to_dict(),
+        "ms_per_frame": round(1000 * seconds["calibrate"] / n, 1),
+    }
     t0 = time.perf_counter()
     oriented = job.orient(ing, calibrated, opts, caster=caster)
     seconds["orient"] = time.perf_counter() - t0
@@ -127,8 +146,13 @@ def run(res, imgs, priors: list[Pose], options: CoregisterOptions) -> dict:
         per_frame_ms.append(1000 * (time.perf_counter() - t0) / len(unit.frames))
         records_of = {r.frame: r for r in records}
         pairs += evaluate(res, unit.building, records_of, priors, calibrated.priors, caster, options)
-    return {"pairs": pairs, "per_frame_ms": per_frame_ms, "calibration": calib, "orientation": orient,
-            "seconds": seconds}
+    return {
+        "pairs": pairs,
+        "per_frame_ms": per_frame_ms,
+        "calibration": calib,
+        "orientation": orient,
+        "seconds": seconds,
+    }
 
 
 def evaluate(res, building, records: dict, original, calibrated, caster, options) -> list[dict]:
@@ -146,15 +170,17 @@ def evaluate(res, building, records: dict, original, calibrated, caster, options
         r = records.get(i)
         pose, status = (r.pose, r.status) if r is not None else (calibrated[i], "unplanned")
         d = pose_delta(T, pose)
-        out.append({
-            "before": reprojection_rms(cam, pts, original[i], T),
-            "calibrated": reprojection_rms(cam, pts, calibrated[i], T),
-            "after": reprojection_rms(cam, pts, pose, T),
-            "status": status,
-            "pos_err": float(np.linalg.norm(d[3:])),
-            "rot_err_deg": float(np.degrees(np.linalg.norm(d[:3]))),
-            "visible_edges": visible_wireframe(wf, cam, T, caster, options.edges).n_edges,
-        })
+        out.append(
+            {
+                "before": reprojection_rms(cam, pts, original[i], T),
+                "calibrated": reprojection_rms(cam, pts, calibrated[i], T),
+                "after": reprojection_rms(cam, pts, pose, T),
+                "status": status,
+                "pos_err": float(np.linalg.norm(d[3:])),
+                "rot_err_deg": float(np.degrees(np.linalg.norm(d[:3]))),
+                "visible_edges": visible_wireframe(wf, cam, T, caster, options.edges).n_edges,
+            }
+        )
     return out
 
 
@@ -165,11 +191,15 @@ def tie_quality(tracks, camera, truth: list[Pose], caster: RayCaster) -> dict:
     if not len(e):
         return {"observations": 0}
     per_frame = np.bincount(tracks.frame)
-    return {"tracks": int(tracks.n_tracks), "observations": len(tracks.track),
-            "median_error_px": round(float(np.median(e)), 3),
-            "p90_error_px": round(float(np.percentile(e, 90)), 3),
-            "correctness_1px": round(float(np.mean(e <= 1.0)), 3),
-            "frames_with_8+_ties": int(np.sum(per_frame >= 8)), "frames": int(np.sum(per_frame > 0))}
+    return {
+        "tracks": int(tracks.n_tracks),
+        "observations": len(tracks.track),
+        "median_error_px": round(float(np.median(e)), 3),
+        "p90_error_px": round(float(np.percentile(e, 90)), 3),
+        "correctness_1px": round(float(np.mean(e <= 1.0)), 3),
+        "frames_with_8+_ties": int(np.sum(per_frame >= 8)),
+        "frames": int(np.sum(per_frame > 0)),
+    }
 
 
 def _r(x, refined) -> float | None:
@@ -246,8 +276,19 @@ def feature_quality(res, imgs, options: CoregisterOptions, n: int = 10) -> dict:
                 continue
             true_uv, _ = T.project(cam, vis.corner_points)
             info = prior_information(priors[i], res.manifest.accuracy, options)
-            f = fit_frame(cam, wf, caster, imgs[i], priors[i], info, T, options.fit, options.edges,
-                          options.features, coarse=False)
+            f = fit_frame(
+                cam,
+                wf,
+                caster,
+                imgs[i],
+                priors[i],
+                info,
+                T,
+                options.fit,
+                options.edges,
+                options.features,
+                coarse=False,
+            )
             pts = f.image_points
             if len(pts):
                 near = np.min(np.linalg.norm(pts[:, None] - true_uv[None], axis=2), axis=1) < 30
@@ -257,12 +298,18 @@ def feature_quality(res, imgs, options: CoregisterOptions, n: int = 10) -> dict:
             keep = np.array([k >= 0 for k in m], bool)
             if len(m):
                 mat.append(match_quality(np.array(m)[keep], f.corner_uv[keep], true_uv, 2.0))
+
     def mean(v, k):
         x = [t[k] for t in v if np.isfinite(t[k])]
         return round(float(np.mean(x)), 3) if x else None
-    return {"extraction_completeness": mean(ext, 0), "extraction_correctness": mean(ext, 1),
-            "matching_completeness": mean(mat, 0), "matching_correctness": mean(mat, 1),
-            "frames_evaluated": len(ext)}
+
+    return {
+        "extraction_completeness": mean(ext, 0),
+        "extraction_correctness": mean(ext, 1),
+        "matching_completeness": mean(mat, 0),
+        "matching_correctness": mean(mat, 1),
+        "frames_evaluated": len(ext),
+    }
 
 
 def main() -> None:
@@ -272,9 +319,25 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--platforms", default="flight,drive")
     ap.add_argument("--texture", action="store_true", help="also run citytherm run on the sequences (slow)")
-    ap.add_argument("--texture-models", default="procedural,berlin",
-                    help="scenes of the texture runs: procedural (the scene above), berlin (bundled model)")
+    ap.add_argument(
+        "--texture-models",
+        default="procedural,berlin",
+        help="scenes of the texture runs: procedural (the scene above), berlin (bundled model)",
+    )
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="only the sequence orientation figures (bench/orientation_sequence.py --quick)",
+    )
     a = ap.parse_args()
+    if a.quick:
+        from bench.orientation_sequence import sequence_figures
+
+        t0 = time.perf_counter()
+        quick = {"bench": "orientation", "quick": True, **sequence_figures(a.frames, 3, quick=True)}
+        quick["wall_s"] = round(time.perf_counter() - t0, 1)
+        print(json.dumps(quick, indent=1))
+        return
     options = CoregisterOptions()
     out: dict = {"bench": "orientation", "frames": a.frames, "cluster_buildings": a.buildings, "seed": a.seed}
     t_all = time.perf_counter()
@@ -308,7 +371,8 @@ def main() -> None:
         out[platform] = sec
         if a.texture:
             out.setdefault("texture", {})[platform] = [
-                texture_run(platform, a.frames, a.buildings, a.seed, m) for m in a.texture_models.split(",")]
+                texture_run(platform, a.frames, a.buildings, a.seed, m) for m in a.texture_models.split(",")
+            ]
     if "texture" not in out:
         out["texture"] = "not run (pass --texture; needs `citytherm run` with refinement)"
     out["wall_s"] = round(time.perf_counter() - t_all, 1)
@@ -334,8 +398,9 @@ def texture_run(platform: str, frames: int, buildings: int, seed: int, model: st
         blds = procedural_block(max(buildings + 3, 6), seed=seed)
         gml = root / "procedural.gml"
         write_citygml(gml, blds, srs_name=blds[0].srs_name)
-    opts = SynthOptions(platform=platform, n_frames=frames, seed=seed, buildings=buildings,
-                        model_path=str(gml))
+    opts = SynthOptions(
+        platform=platform, n_frames=frames, seed=seed, buildings=buildings, model_path=str(gml)
+    )
     res = synthesize(blds, opts)
     pkg = write_synthetic_package(res, root / "seq")
     # texels per metre: 10 for drives (about 1.5 cm per pixel at 11 m), 2.5 for flights (about
@@ -360,8 +425,10 @@ def texture_run(platform: str, frames: int, buildings: int, seed: int, model: st
             r["stage_s"] = {k: round(v, 2) for k, v in rep["timings_s"].items()}
         out["refine" if refine else "no_refine"] = r
     ref = out["refine"]
-    out["bars"] = {"rmse_k<=0.45": ref["rmse_k"] <= 0.45,
-                   "misregistration<=0.5": (ref.get("misregistration_median_texel") or 1e9) <= 0.5}
+    out["bars"] = {
+        "rmse_k<=0.45": ref["rmse_k"] <= 0.45,
+        "misregistration<=0.5": (ref.get("misregistration_median_texel") or 1e9) <= 0.5,
+    }
     out["results"] = str(root)
     return out
 

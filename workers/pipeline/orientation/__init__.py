@@ -7,7 +7,8 @@ over them. Out: the sequence calibration (boresight, GNSS offset, lever arm, tim
 calibrated priors and the estimated mounting), the sequence orientation (a pose and its
 covariance per frame, tie tracks) and per building `{frame: RefinedPose}` with status
 `"refined"` or `"prior"`. A run calls them in that order: calibrate once per sequence, orient the
-sequence (drives), then refine each building unit.
+sequence (drives, terrestrial; from the calibrated priors or the manifest's), then refine each
+building unit.
 
 Entry points, by stage:
 - `calibration`: the systematic pose error of a sequence (`calibrate_sequence`,
@@ -16,8 +17,11 @@ Entry points, by stage:
   (`design`, `frame_motion`); `mounting`: θ in the manifest's mounting terms
   (`mounting_document`, `calibration_report`, `calibrated_mounting`).
 - `sequence`: every frame in overlapping blocks of tracks and bundle adjustment, before the
-  building units (`orient_sequence`, `SequenceOrientation`, `SequenceOrientationOptions`,
-  `SEQUENCE_PLATFORMS`).
+  building units, calibration accepted or not (`orient_sequence`, `SequenceOrientation`,
+  `SequenceOrientationOptions`, `uncalibrated_options`, `SEQUENCE_PLATFORMS`);
+  `sequence_acceptance`: which frames of a block are confirmed (`confirm_block`,
+  `ConfirmOptions`: edges, planes and tracks, consistency with the priors); `smoothing`: start
+  poses from noisy priors (`smooth_poses`).
 - `building`: the per-building refinement of a unit's frames (`refine_building`; its options
   `CoregisterOptions` and `calibrated_options` live in `building_options`).
 - `block`: a block of frames oriented with tracks and the model (`refine_block`,

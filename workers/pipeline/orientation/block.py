@@ -162,9 +162,23 @@ def adjust_block(
     poses = dict(start)
     for _ in range(2):
         tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks)
-        res = bundle_adjust(camera, frames, images, poses, prior, frame_info, common_info, tracks, scene_wf,
-                            raycaster, options.bundle, fit_options, edge_options, feature_options,
-                            prior_options)
+        res = bundle_adjust(
+            camera,
+            frames,
+            images,
+            poses,
+            prior,
+            frame_info,
+            common_info,
+            tracks,
+            scene_wf,
+            raycaster,
+            options.bundle,
+            fit_options,
+            edge_options,
+            feature_options,
+            prior_options,
+        )
         poses = res.poses
         if res.sigma0 <= options.retrack_sigma0:
             break
@@ -197,18 +211,39 @@ def refine_block(
     if len(frames) < 2:
         keep = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
         return keep, None, "fewer than 2 frames"
-    res, _ = adjust_block(camera, scene_wf, raycaster, frames, images, prior, start, prior_info, options,
-                          fit_options, edge_options, feature_options, prior_options)
+    res, _ = adjust_block(
+        camera,
+        scene_wf,
+        raycaster,
+        frames,
+        images,
+        prior,
+        start,
+        prior_info,
+        options,
+        fit_options,
+        edge_options,
+        feature_options,
+        prior_options,
+    )
     reason = block_reason(frames, prior, res, options)
     if reason:
         return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, reason
     anchor = anchoring(frames, res.edge_support, res.null_support, options)
     eligible = {i for i, a in anchor.items() if a is not False}
     if not any(anchor.values()):
-        return {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames}, res, \
-            "the block found the model nowhere (edge support)"
-    return accept_frames(camera, building_wf.vertices, frames, prior, res, options, fit_options,
-                         eligible=eligible), res, ""
+        return (
+            {i: RefinedPose(i, prior[i], "prior", _rms(res, i), 0) for i in frames},
+            res,
+            "the block found the model nowhere (edge support)",
+        )
+    return (
+        accept_frames(
+            camera, building_wf.vertices, frames, prior, res, options, fit_options, eligible=eligible
+        ),
+        res,
+        "",
+    )
 
 
 def refine_from_sequence(
@@ -241,15 +276,33 @@ def refine_from_sequence(
     frames = list(frames)
     oriented = [i for i in frames if i in sequence.covariance and np.all(np.isfinite(sequence.covariance[i]))]
     margin = fit_options.edge_radius_min_px + fit_options.roi_margin_px
-    edges = frame_edges(camera, building_wf, raycaster, oriented, images, sequence.poses, margin, fit_options,
-                        edge_options, feature_options)
+    edges = frame_edges(
+        camera,
+        building_wf,
+        raycaster,
+        oriented,
+        images,
+        sequence.poses,
+        margin,
+        fit_options,
+        edge_options,
+        feature_options,
+    )
     support: dict[int, float] = {}
     null: dict[int, float] = {}
     matched: dict[int, int] = {}
     rms: dict[int, float] = {}
     for i, ed in edges.items():
-        got = edge_support(camera, building_wf, raycaster, sequence.poses[i], ed.feats, edge_options,
-                           fit_options, prior_options.null_shift_px)
+        got = edge_support(
+            camera,
+            building_wf,
+            raycaster,
+            sequence.poses[i],
+            ed.feats,
+            edge_options,
+            fit_options,
+            prior_options.null_shift_px,
+        )
         if got is not None:
             support[i], null[i], off, matched[i] = got
             rms[i] = float(np.sqrt(np.mean(off**2))) if len(off) else float("nan")
@@ -263,8 +316,12 @@ def refine_from_sequence(
         ties = sequence.ties.get(i, 0)
         n = ties + matched.get(i, 0)
         r = _combined_rms(ties, sequence.tie_rms_px.get(i, float("nan")), rms.get(i, float("nan")))
-        if pose is None or i not in oriented or anchor.get(i) is False or \
-                sigma_px(camera, pose, building_wf.vertices, sequence.covariance[i]) > options.max_sigma_px:
+        if (
+            pose is None
+            or i not in oriented
+            or anchor.get(i) is False
+            or sigma_px(camera, pose, building_wf.vertices, sequence.covariance[i]) > options.max_sigma_px
+        ):
             out[i] = RefinedPose(i, prior[i], "prior", r, n)
         else:
             out[i] = RefinedPose(i, pose, "refined", r, n)
@@ -296,8 +353,9 @@ def accept_frames(
         pose = res.poses[i]
         ties, edges = res.ties[i], res.matched_edges.get(i, 0)
         rms = _rms(res, i)
-        seen = ties >= options.min_ties or \
-            (edges >= fo.min_edges and res.edge_support.get(i, 0.0) >= fo.min_support)
+        seen = ties >= options.min_ties or (
+            edges >= fo.min_edges and res.edge_support.get(i, 0.0) >= fo.min_support
+        )
         ok_rms = not np.isfinite(rms) or rms <= fo.max_rms_px
         if seen and ok_rms and sigma_px(camera, pose, X, res.covariance[i]) <= options.max_sigma_px:
             out[i] = RefinedPose(i, pose, "refined", rms, ties + edges)
@@ -322,23 +380,32 @@ def _rms(res: BundleResult, i: int) -> float:
     return _combined_rms(res.ties[i], res.tie_rms_px[i], res.edge_rms_px.get(i, float("nan")))
 
 
-def block_reason(frames: Sequence[int], prior: Mapping[int, Pose], res: BundleResult,
-                 options: BlockOptions) -> str:
-    """Why the block as a whole is not trusted ("" when it is): no frame sees model edges, or
-    the median correction is beyond the plausible range. Where the block found the model is
-    decided frame by frame (`anchoring`)."""
-    if not res.edge_support:
+def block_reason(
+    frames: Sequence[int],
+    prior: Mapping[int, Pose],
+    res: BundleResult,
+    options: BlockOptions,
+    need_edges: bool = True,
+) -> str:
+    """Why the block as a whole is not trusted ("" when it is): no frame sees model edges (with
+    `need_edges`), or the median correction is beyond the plausible range. Where the block found
+    the model is decided frame by frame (`anchoring`; the sequence orientation:
+    `sequence_acceptance`)."""
+    if need_edges and not res.edge_support:
         return "no frame of the block sees model edges"
     d = np.array([pose_delta(prior[i], res.poses[i]) for i in frames])
     med = np.median(d, axis=0)
-    if np.linalg.norm(med[3:]) > options.max_correction_m or \
-            np.degrees(np.linalg.norm(med[:3])) > options.max_correction_deg:
+    if (
+        np.linalg.norm(med[3:]) > options.max_correction_m
+        or np.degrees(np.linalg.norm(med[:3])) > options.max_correction_deg
+    ):
         return "correction beyond the plausible range"
     return ""
 
 
-def anchoring(frames: Sequence[int], support: Mapping[int, float], null: Mapping[int, float],
-              options: BlockOptions) -> dict[int, bool | None]:
+def anchoring(
+    frames: Sequence[int], support: Mapping[int, float], null: Mapping[int, float], options: BlockOptions
+) -> dict[int, bool | None]:
     """Whether the block found the model around each frame: among the frames within
     `anchor_frames` of it (frame indices: frames of another pass of a loop are not its
     neighbours) that see model edges (`support`, `null`: edge support and null support per
@@ -360,8 +427,9 @@ def anchoring(frames: Sequence[int], support: Mapping[int, float], null: Mapping
         if not near.any():
             out[f] = None
             continue
-        out[f] = bool(np.mean(sup[near]) >= options.min_mean_support and
-                      np.mean(gain[near]) >= options.min_support_gain)
+        out[f] = bool(
+            np.mean(sup[near]) >= options.min_mean_support and np.mean(gain[near]) >= options.min_support_gain
+        )
     return out
 
 

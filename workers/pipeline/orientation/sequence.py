@@ -18,11 +18,28 @@ one building's frames alone would lose exactly those neighbours.
 Method: the frames are split where the time between two frames exceeds `max_gap_s`, then into
 windows of `window_frames` overlapping by `overlap_frames`; each window is one block
 (`block.adjust_block`: tracks, bundle adjustment against the scene wireframe with a
-common prior error of the block and per-frame noise, tracked again when the ties fit badly). A
-frame whose neighbours with model edges do not support the adjusted poses
-(`block.anchoring`) keeps its prior; a frame with no model edges around it keeps the
-adjusted pose and its covariance (the units decide whether it is determined well enough). A
-frame in two windows takes the pose of the one where it lies further from the window's ends.
+common prior error of the block and per-frame noise, tracked again when the ties fit badly).
+Which frames take the adjusted poses is decided by `sequence_acceptance.confirm_block`: model
+edges where the frames around see them (`block.anchoring`), the model planes and the tracks'
+geometry where they do not (a close-range sequence of one facade whose outline stays outside the
+frames), and every frame's consistency with its prior; a frame not confirmed keeps its prior, a
+block not confirmed is rejected. A frame taken keeps the adjusted pose and its covariance (the
+units decide whether it is determined well enough). A frame in two windows takes the pose of the
+one where it lies further from the window's ends.
+
+Calibrated or not (issue 19): after an accepted sequence calibration the priors carry a common
+error of decimetres and white noise; without one (a close-range sequence the calibration
+rejects: "too few frames see the model") they are the manifest's GNSS/INS poses, common error
+and all, which the block's common correction takes up the same way. What the tracker cannot
+take is white noise beyond the per-frame σ the blocks assume (`PriorOptions`: 0.3 m, 0.3°;
+a hand-held GNSS/INS: 0.5 m and 1° from frame to frame, 50 px of wrong prediction that lock
+the tracks onto the next window of a regular facade). So the priors' white noise is measured
+from the priors themselves (`smoothing.prior_noise`); where it exceeds that σ clearly
+(`noisy_factor`), the tracking and the adjustment start from the priors smoothed over
+`start_smoothing_s` (`smoothing.smooth_poses`), the per-frame σ is raised to the measured noise
+(the priors stay the observations) and every block is adjusted a second time from its adjusted
+poses. Calibrated drives with the default error model (0.2 m, 0.05°) stay below it and run as
+before.
 """
 
 from __future__ import annotations
@@ -30,7 +47,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -42,12 +59,13 @@ from workers.pipeline.orientation.block import (
     BlockOptions,
     UnitSequence,
     adjust_block,
-    anchoring,
     block_reason,
 )
 from workers.pipeline.orientation.building_options import CoregisterOptions
 from workers.pipeline.orientation.bundle import BundleResult
-from workers.pipeline.orientation.priors import prior_information
+from workers.pipeline.orientation.priors import frame_noise_information, prior_information
+from workers.pipeline.orientation.sequence_acceptance import Confirmation, ConfirmOptions, confirm_block
+from workers.pipeline.orientation.smoothing import prior_noise, smooth_poses
 from workers.pipeline.orientation.tracks import Tracks
 from workers.pipeline.orientation.wireframe import WireframeError, mesh_wireframe
 
@@ -60,7 +78,7 @@ __all__ = [
 ]
 
 #: platforms whose sequences are oriented in blocks before the units (close range: a frame alone
-#: rarely fixes its pose); flights orient frame by frame in the units
+#: rarely fixes its pose), calibration accepted or not; flights orient frame by frame in the units
 SEQUENCE_PLATFORMS = ("drive", "terrestrial")
 
 
@@ -77,11 +95,24 @@ class SequenceOrientationOptions:
     window_frames: int = 120
     overlap_frames: int = 30
     max_gap_s: float = 1.0
+    # when the priors' white noise (`smoothing.prior_noise`) exceeds `noisy_factor` × the
+    # per-frame σ of `coregister.prior`, the start poses of tracking and adjustment are the
+    # priors smoothed over time with this Gaussian σ (seconds; 0: never) and the per-frame σ is
+    # raised to the noise. The factor keeps drives out: their corners turn 30–60°/s, which a
+    # local linear fit over a second bends by degrees (a calibrated drive whose noise measured
+    # 0.30 m lost two frames so), and their default noise (0.2 m) measures up to 0.3 m
+    start_smoothing_s: float = 1.0
+    noisy_factor: float = 1.5
+    # which frames of an adjusted block are confirmed (`sequence_acceptance`: edges where they
+    # exist, planes and tracks where they do not, consistency with the priors)
+    confirm: ConfirmOptions = field(default_factory=ConfirmOptions)
 
     def __post_init__(self) -> None:
         if self.window_frames < 2 or not 0 <= self.overlap_frames < self.window_frames:
-            raise ValueError(f"windows of {self.window_frames} frames overlapping by {self.overlap_frames}: "
-                             "need at least 2 frames and an overlap smaller than the window")
+            raise ValueError(
+                f"windows of {self.window_frames} frames overlapping by {self.overlap_frames}: "
+                "need at least 2 frames and an overlap smaller than the window"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,10 +125,15 @@ class SequenceOrientation:
         blocks: per window `{"frames": [first, last], "accepted": bool, "reason": str,
             "frames_anchored": int, "frames_without_edges_around": int, "mean_edge_support":
             float | None, "null_support": float | None, "sigma0": float, "tracks": int,
-            "tie_observations": int}` (`block.anchoring`).
+            "tie_observations": int, "frames_confirmed_by_planes": int,
+            "frames_inconsistent_with_priors": int, "frames_undetermined": int,
+            "plane_rms_m": float | None,
+            "frames_taken": int}` (`sequence_acceptance.confirm_block`).
         tracks: the tie observations of each frame from the window its pose came from (track
             points as adjusted, ids unique; the overlapping windows tracked the same points).
         ties, tie_rms_px: inlier tie observations of each oriented frame and their RMS (px).
+        prior_noise: the priors' white noise `{"attitude_deg", "position_m"}` (`prior_noise`)
+            and whether the blocks started from the smoothed priors (`"smoothed_start"`).
     """
 
     poses: dict[int, Pose]
@@ -106,6 +142,7 @@ class SequenceOrientation:
     tracks: Tracks
     ties: dict[int, int] = field(default_factory=dict)
     tie_rms_px: dict[int, float] = field(default_factory=dict)
+    prior_noise: dict = field(default_factory=dict)
 
     @property
     def oriented(self) -> list[int]:
@@ -122,9 +159,18 @@ class SequenceOrientation:
             tie_rms_px={f: self.tie_rms_px.get(f, float("nan")) for f in fs},
         )
 
-    def to_dict(self) -> dict:
-        """The report.json `sequence_orientation` block: frames, frames oriented, the blocks."""
-        return {"frames": len(self.poses), "frames_oriented": len(self.covariance), "blocks": self.blocks}
+    def to_dict(self, priors: str | None = None) -> dict:
+        """The report.json `sequence_orientation` block: which `priors` the blocks started from
+        (`"calibrated"` or `"manifest"`; left out when None), frames, frames oriented, the priors'
+        white noise, the blocks."""
+        head = {} if priors is None else {"priors": priors}
+        return {
+            **head,
+            "frames": len(self.poses),
+            "frames_oriented": len(self.covariance),
+            "prior_noise": self.prior_noise,
+            "blocks": self.blocks,
+        }
 
 
 def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list[tuple[int, int]]:
@@ -197,22 +243,45 @@ def orient_sequence(
         return SequenceOrientation(poses, covariance, blocks, Tracks.empty())
     # position of each frame in the window that owns it: distance to the window's ends
     best: dict[int, int] = {}
+    start, options, noise = _start_poses(prior, frames, times, options)
+    co = options.coregister
     spans = windows([times[f] for f in frames], options)
     for k_win, (a, b) in enumerate(spans):
         if progress is not None:
             progress(k_win, len(spans))
         block = frames[a:b]
         images = {f: frame_source.load(f) for f in block}
-        info = prior_information(prior[block[len(block) // 2]], accuracy, options.coregister)
-        co = options.coregister
-        res, tracks = adjust_block(camera, scene_wf, raycaster, block, images, prior, prior, info,
-                                   options.block, co.fit, co.edges, co.features, co.prior)
-        reason = block_reason(block, prior, res, options.block)
-        anchor = anchoring(block, res.edge_support, res.null_support, options.block) if not reason else {}
-        if not reason and not any(anchor.values()):
-            reason = "the block found the model nowhere (edge support)"
-        taken = [f for f in block if anchor.get(f) is not False]
-        blocks.append(_block_summary(block, res, tracks, anchor, reason))
+        info = prior_information(prior[block[len(block) // 2]], accuracy, co)
+        frame_info = frame_noise_information(co.prior)
+        res, tracks = adjust_block(
+            camera,
+            scene_wf,
+            raycaster,
+            block,
+            images,
+            prior,
+            start,
+            info,
+            options.block,
+            co.fit,
+            co.edges,
+            co.features,
+            co.prior,
+        )
+        conf = confirm_block(
+            camera,
+            block,
+            prior,
+            res,
+            tracks,
+            frame_info,
+            options.block,
+            options.confirm,
+            options.block.bundle,
+        )
+        reason = block_reason(block, prior, res, options.block, need_edges=False) or conf.reason
+        taken = [f for f in block if conf.taken[f] and not reason]
+        blocks.append(_block_summary(block, res, tracks, conf, reason))
         if reason:
             continue
         for k, f in enumerate(block):
@@ -229,12 +298,46 @@ def orient_sequence(
     # each frame's tie observations from the window its pose came from (overlapping windows track
     # the same points again)
     kept = [t.subset(np.array([owner.get(int(f)) == w for f in t.frame], bool)) for w, t in parts.items()]
-    return SequenceOrientation(poses, covariance, blocks, Tracks.concat(kept), ties, tie_rms)
+    return SequenceOrientation(poses, covariance, blocks, Tracks.concat(kept), ties, tie_rms, noise)
 
 
-def _block_summary(block: list[int], res: BundleResult, tracks: Tracks, anchor: Mapping[int, bool | None],
-                   reason: str) -> dict:
+def _start_poses(
+    prior: Mapping[int, Pose],
+    frames: Sequence[int],
+    times: Mapping[int, float],
+    options: SequenceOrientationOptions,
+) -> tuple[dict[int, Pose], SequenceOrientationOptions, dict]:
+    """The start poses of the blocks, the options for them, and the `prior_noise` figures (module
+    docstring): the priors as they are, or where their measured white noise exceeds the per-frame
+    σ clearly, the smoothed priors with that noise as the per-frame σ and a second pass of every
+    block from its adjusted poses (`BlockOptions.retrack_sigma0` 0: the first pass's edge search
+    started from poses too far off; a hand-held facade sequence after a calibration that
+    traded 2.4° of pan for 0.8 m of offset ended 6 px off after one pass, 0.06 px after two)."""
+    co = options.coregister
+    deg, m = prior_noise(prior, frames)
+    k = options.noisy_factor
+    noisy = options.start_smoothing_s > 0 and (
+        deg > k * co.prior.frame_sigma_deg or m > k * co.prior.frame_sigma_m
+    )
+    figures = {"attitude_deg": round(deg, 3), "position_m": round(m, 3), "smoothed_start": noisy}
+    if not noisy:
+        return {f: prior[f] for f in frames}, options, figures
+    pr = replace(
+        co.prior,
+        frame_sigma_deg=max(co.prior.frame_sigma_deg, deg),
+        frame_sigma_m=max(co.prior.frame_sigma_m, m),
+    )
+    noisy_options = replace(
+        options, coregister=replace(co, prior=pr), block=replace(options.block, retrack_sigma0=0.0)
+    )
+    return smooth_poses(prior, frames, times, options.start_smoothing_s), noisy_options, figures
+
+
+def _block_summary(
+    block: list[int], res: BundleResult, tracks: Tracks, conf: Confirmation, reason: str
+) -> dict:
     """One window's entry of `SequenceOrientation.blocks` (see there)."""
+    anchor = conf.anchor
     sup = [res.edge_support[f] for f in block if f in res.edge_support]
     nul = [res.null_support[f] for f in block if f in res.null_support]
     return {
@@ -248,4 +351,9 @@ def _block_summary(block: list[int], res: BundleResult, tracks: Tracks, anchor: 
         "sigma0": round(float(res.sigma0), 3),
         "tracks": int(tracks.n_tracks),
         "tie_observations": int(np.sum(res.inlier)),
+        "frames_confirmed_by_planes": len(conf.by_planes),
+        "frames_inconsistent_with_priors": len(conf.inconsistent),
+        "frames_undetermined": len(conf.undetermined),
+        "plane_rms_m": round(conf.plane_rms_m, 3) if np.isfinite(conf.plane_rms_m) else None,
+        "frames_taken": sum(1 for f in block if conf.taken[f] and not reason),
     }

@@ -1,7 +1,9 @@
-"""True platform trajectories for synthetic sequences: drives around building clusters, flights.
+"""True platform trajectories for synthetic sequences: drives around building clusters, flights,
+walks along one facade.
 
-In: buildings (model CRS, metres), a cluster choice, a ground height, `DriveOptions` or
-`FlightOptions`. Out: a `PathTrajectory`, a continuous function of time giving the true IMU
+In: buildings (model CRS, metres), a cluster choice, a ground height, `DriveOptions`,
+`FlightOptions` or `TerrestrialOptions`. Out: a `PathTrajectory` (or a `LineTrajectory` for a
+walk), a continuous function of time giving the true IMU
 reference point `(N, 3)` (world) and the true attitude `[roll, pitch, heading]` `(N, 3)` degrees
 (spec conventions: heading from grid north, NED/body z-y-x), and the nominal camera mounting
 for the platform (`camera_to_body`).
@@ -11,6 +13,9 @@ driven clockwise so the buildings are on the right, checked to never enter any f
 model; the camera looks right, turned forward and tilted up. Flight: a clockwise circle around
 the cluster (or a racetrack of two straight strips) at 100–500 m, camera looking right ~45° down;
 the platform banks in turns (coordinated turn) and the mounting compensates the circle's bank.
+Terrestrial (hand-held or a tripod dolly, close range): a straight walk at 8–15 m in front of
+the cluster's largest wall, parallel to it and centred on it, the wall on the right; the camera
+looks right at the wall, slightly up; the hand-held camera sways.
 """
 
 from __future__ import annotations
@@ -52,6 +57,19 @@ class FlightOptions:
     height_m: float = 200.0  # 100..500
     look_down_deg: float = 45.0  # optical axis below the horizon (compensating a circle's bank)
     sway_deg: float = 0.5
+
+
+@dataclass(frozen=True)
+class TerrestrialOptions:
+    """A person walking along one facade with a hand-held camera. Heights above the ground plane,
+    metres; angles in degrees."""
+
+    speed_mps: float = 1.2
+    height_m: float = 1.6  # IMU reference point (the camera) above ground
+    distance_m: float = 10.0  # from the facade's plane, 8..15
+    look_forward_deg: float = 0.0  # camera turned from the right side toward the front
+    look_up_deg: float = 5.0  # camera tilted up (the ground line stays in view at 10 m)
+    sway_deg: float = 0.8  # slow roll/pitch sway of the hand-held camera (true motion)
 
 
 def choose_cluster(buildings: Sequence[Building], n_or_ids: int | Sequence[str], seed: int = 0) -> list[int]:
@@ -144,6 +162,89 @@ def flight_loop(buildings: Sequence[Building], cluster: Sequence[int], options: 
     track = shapely.LineString([(c[0] - half, c[1]), (c[0] + half, c[1])]).buffer(reach, quad_segs=32)
     cw = orient(track, sign=-1.0)
     return np.asarray(shapely.segmentize(cw.exterior, 0.5).coords)[:-1, :2]
+
+
+def facade_walk(
+    buildings: Sequence[Building], cluster: Sequence[int], options: TerrestrialOptions, duration_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The walk along the cluster's largest wall (`WallSurface` polygon, or any polygon within 10°
+    of vertical when there is none): its start `(2,)` (world XY, metres) and unit walking
+    direction `(2,)`. The walk is parallel to the wall at `distance_m` on the side its normal
+    (exterior ring orientation) points to, the wall on the right, centred on the wall's
+    horizontal extent and `speed_mps · duration_s` long."""
+    from workers.pipeline.geometry.polygons import fit_plane
+
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    for k in cluster:
+        for poly in buildings[k].iter_polygons():
+            plane = fit_plane(poly)
+            if plane is None or abs(plane.normal[2]) > np.sin(np.radians(10.0)):
+                continue
+            wall = poly.surface_class == "WallSurface"
+            score = plane.area * (2.0 if wall else 1.0)
+            if best is None or score > best[0]:
+                best = (score, plane.normal, np.asarray(poly.exterior.coords, dtype=np.float64))
+    if best is None:
+        raise SynthError("buildings: the cluster has no vertical wall to walk along")
+    _, normal, ring = best
+    n = np.asarray(normal[:2], dtype=np.float64) / np.linalg.norm(normal[:2])
+    direction = np.array([n[1], -n[0]])  # right of the walking direction = −n: facing the wall
+    along = ring[:, :2] @ direction
+    centre = 0.5 * (along.min() + along.max())
+    wall_d = float(np.median(ring[:, :2] @ n))  # the wall's line: n · xy = wall_d
+    start = (wall_d + options.distance_m) * n + (centre - 0.5 * options.speed_mps * duration_s) * direction
+    return start, direction
+
+
+class LineTrajectory:
+    """A platform moving at constant speed along a straight horizontal line, heading constant.
+
+    Args:
+        start: `(2,)` world XY at `t0`, metres.
+        direction: `(2,)` unit walking direction (world XY).
+        z: height of the IMU reference point, world metres.
+        speed_mps: speed along the line.
+        t0: time of `start`, seconds.
+        sway_deg: amplitude of a slow roll/pitch sway (true motion).
+        seed: seed of the sway phases.
+    """
+
+    def __init__(
+        self,
+        start: np.ndarray,
+        direction: np.ndarray,
+        z: float,
+        speed_mps: float,
+        t0: float = 0.0,
+        sway_deg: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        if speed_mps <= 0:
+            raise SynthError("trajectory: need a positive speed")
+        d = np.asarray(direction, dtype=np.float64)
+        self.start = np.asarray(start, dtype=np.float64)
+        self.direction = d / np.linalg.norm(d)
+        self.z, self.speed, self.t0 = float(z), float(speed_mps), float(t0)
+        self.heading_deg = float(np.mod(np.degrees(np.arctan2(self.direction[0], self.direction[1])), 360.0))
+        rng = rng_for(seed, "sway")
+        self.sway = float(sway_deg)
+        self.sway_f = rng.uniform(0.1, 0.4, size=2)
+        self.sway_phase = rng.uniform(0, 2 * np.pi, size=2)
+
+    @property
+    def mean_bank_deg(self) -> float:
+        """No turns: 0."""
+        return 0.0
+
+    def state(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """True IMU position `(N, 3)` world metres and attitude `(N, 3)` `[roll, pitch, heading]`
+        degrees at `times` `(N,)` seconds."""
+        t = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        xy = self.start + self.speed * (t - self.t0)[:, None] * self.direction
+        roll = self.sway * np.sin(2 * np.pi * self.sway_f[0] * t + self.sway_phase[0])
+        pitch = self.sway * np.sin(2 * np.pi * self.sway_f[1] * t + self.sway_phase[1])
+        att = np.stack([roll, pitch, np.full_like(t, self.heading_deg)], axis=-1)
+        return np.concatenate([xy, np.full((len(t), 1), self.z)], axis=1), att
 
 
 def camera_to_body(forward_deg: float, up_deg: float) -> np.ndarray:
