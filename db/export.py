@@ -33,11 +33,12 @@ from db.citygml.writer import write_citygml
 from db.errors import CityDBError, NotFoundError
 from db.geomcodec import polygon_rings_from_wkb
 from db.model_load import assemble_buildings, building_rows, surface_polygons
-from db.results_folder.write import anomalies_document, write_json
+from db.results_folder.write import anomalies_document, anomaly_feature, facade_attributes, write_json
 from db.session import as_engine
 from db.srid import database_srid, from_database
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture
 from workers.pipeline.geometry.transform import CrsTransform, transform_building
+from workers.pipeline.results import Anomaly
 
 __all__ = ["ExportOptions", "ExportSummary", "export_citygml"]
 
@@ -318,9 +319,14 @@ def export_citygml(
         )
         own_model, extra_model = _assemble(conn, model_apps, images)
 
+        figures: dict[str, dict[str, Any]] = {}  # filled batch by batch, read as buildings are written
+
         def stream() -> Iterator[Building]:
             for i in range(0, len(roots), opts.batch_size):
-                for b in _batch(conn, f, roots[i : i + opts.batch_size], images):
+                batch = roots[i : i + opts.batch_size]
+                if f.job_id is not None or f.theme is not None:  # as the job's results folder has them
+                    figures.update(_facade_figures(conn, f, batch))
+                for b in _batch(conn, f, batch, images):
                     yield transform_building(b, back, set_srs=False)
 
         gml = out / opts.gml_name
@@ -331,11 +337,54 @@ def export_citygml(
             envelope=envelope,
             model_appearances=[*own_model.get(None, []), *extra_model.get(None, [])],  # type: ignore[call-overload]
             name=m["gml_name"],
+            surface_attributes=figures,
         )
         n_anomalies = _write_anomalies(conn, f, roots, m["srs_name"], out / "anomalies.geojson", back)
     return ExportSummary(
         path=gml, buildings=n, textures=images.count, seconds=time.perf_counter() - t0, anomalies=n_anomalies
     )
+
+
+def _facade_figures(conn: Connection, f: _Filter, roots: Sequence[int]) -> dict[str, dict[str, Any]]:
+    """The facade figures of the exported job's (or theme's) surfaces under the top-level buildings
+    `roots` as generic attributes by polygon gml id (`results_folder.write.facade_attributes`),
+    the typical temperature back in the radiometry unit; where several jobs of a theme analysed a
+    surface, the newest appearance's figures."""
+    leaks: dict[int, list[str]] = {}
+    for sid, aid in conn.execute(
+        text(
+            "SELECT ta.surface_id, ta.anomaly_id FROM thermal_anomaly ta JOIN appearance a "
+            f"ON a.id = ta.appearance_id WHERE ta.building_id = ANY(:roots) AND {f.appearance_sql()} "
+            "AND ta.kind = 'leak' AND ta.anomaly_id IS NOT NULL ORDER BY ta.id"
+        ),
+        {**f.params(), "roots": list(roots)},
+    ).all():
+        leaks.setdefault(sid, []).append(aid)
+    out: dict[str, dict[str, Any]] = {}
+    for r in conn.execute(
+        text(
+            "SELECT s.id AS sid, s.gml_id, st.typical_k, st.spread_k, st.hot_share, st.window_share, "
+            "st.heat_loss_index, st.windows, st.leaks, st.unit FROM surface_thermal st "
+            "JOIN appearance a ON a.id = st.appearance_id JOIN surface s ON s.id = st.surface_id "
+            f"JOIN building pb ON pb.id = s.building_id WHERE COALESCE(pb.root_id, pb.id) = ANY(:roots) "
+            f"AND a.job_id IS NOT NULL AND {f.appearance_sql()} ORDER BY a.id"
+        ),
+        {**f.params(), "roots": list(roots)},
+    ).mappings():
+        typical = r["typical_k"]
+        if typical is not None and r["unit"] == "degC":
+            typical -= 273.15
+        fig = {"typical": typical, "spread": r["spread_k"], "hot_share": r["hot_share"],
+               "window_share": r["window_share"], "heat_loss_index": r["heat_loss_index"],
+               "windows": r["windows"], "leaks": r["leaks"]}  # fmt: skip
+        attrs = facade_attributes(fig, leaks.get(r["sid"], ()))
+        if attrs is not None:
+            out[r["gml_id"]] = attrs
+    return out
+
+
+def _nan(v: float | None) -> float:
+    return float("nan") if v is None else float(v)
 
 
 def _write_anomalies(
@@ -348,7 +397,8 @@ def _write_anomalies(
         text(
             "SELECT b.gml_id AS building, s.gml_id AS surface, ST_AsBinary(ta.outline) AS outline, "
             "ta.centre, "
-            "ta.area_m2, ta.peak_delta_k, ta.mean_delta_k, ta.kind FROM thermal_anomaly ta "
+            "ta.area_m2, ta.peak_delta_k, ta.mean_delta_k, ta.kind, ta.anomaly_id, ta.frames, "
+            "ta.best_resolution_m, ta.confidence FROM thermal_anomaly ta "
             "JOIN appearance a ON a.id = ta.appearance_id JOIN building b ON b.id = ta.building_id "
             "LEFT JOIN surface s ON s.id = ta.surface_id "
             f"WHERE ta.building_id = ANY(:roots) AND {f.appearance_sql()} ORDER BY b.ordinal, ta.id"
@@ -358,21 +408,24 @@ def _write_anomalies(
     features = []
     for r in rows:
         rings = polygon_rings_from_wkb(r["outline"]) if r["outline"] is not None else []
-        rings = [back.points(ring) for ring in rings]
+        outline = back.points(rings[0]) if rings else np.zeros((0, 3))
         features.append(
-            {
-                "type": "Feature",
-                "geometry": {"type": "Polygon", "coordinates": [ring.tolist() for ring in rings]},
-                "properties": {
-                    "building": r["building"],
-                    "surface": r["surface"],
-                    "centre": list(r["centre"]),
-                    "area_m2": r["area_m2"],
-                    "peak_delta_k": r["peak_delta_k"],
-                    "mean_delta_k": r["mean_delta_k"],
-                    "kind": r["kind"],
-                },
-            }
+            anomaly_feature(
+                Anomaly(
+                    building_id=r["building"],
+                    polygon_id=r["surface"],
+                    outline=outline,
+                    centre=np.asarray(r["centre"], dtype=np.float64),
+                    area_m2=r["area_m2"],
+                    peak_delta_k=r["peak_delta_k"],
+                    mean_delta_k=r["mean_delta_k"],
+                    kind=r["kind"],
+                    id=r["anomaly_id"] or "",
+                    frames=int(r["frames"] or 0),
+                    best_resolution_m=_nan(r["best_resolution_m"]),
+                    confidence=_nan(r["confidence"]),
+                )
+            )
         )
     if features or f.theme is not None or f.job_id is not None:
         write_json(path, anomalies_document(features, srs_name))

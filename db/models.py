@@ -437,6 +437,16 @@ class SurfaceThermal(Base):
     best_resolution_m: Mapped[float | None] = mapped_column(Double)
     mean_observations: Mapped[float | None] = mapped_column(Double)
     reason: Mapped[str | None] = mapped_column(Text)
+    #: facade figures of the anomaly analysis (0010; docs/anomalies.md): typical temperature and
+    #: its robust spread (kelvin), shares of the observed area above typical and in windows,
+    #: heat-loss index (kelvin), numbers of windows and leak candidates.
+    typical_k: Mapped[float | None] = mapped_column(Double)
+    spread_k: Mapped[float | None] = mapped_column(Double)
+    hot_share: Mapped[float | None] = mapped_column(Double)
+    window_share: Mapped[float | None] = mapped_column(Double)
+    heat_loss_index: Mapped[float | None] = mapped_column(Double)
+    windows: Mapped[int | None] = mapped_column(Integer)
+    leaks: Mapped[int | None] = mapped_column(Integer)
 
 
 class ThermalAnomaly(Base):
@@ -462,6 +472,11 @@ class ThermalAnomaly(Base):
     area_m2: Mapped[float] = mapped_column(Double)
     peak_delta_k: Mapped[float] = mapped_column(Double)
     mean_delta_k: Mapped[float] = mapped_column(Double)
+    #: the detector's stable id, distinct frames, best resolution (m/px) and confidence (0010).
+    anomaly_id: Mapped[str | None] = mapped_column(Text)
+    frames: Mapped[int | None] = mapped_column(Integer)
+    best_resolution_m: Mapped[float | None] = mapped_column(Double)
+    confidence: Mapped[float | None] = mapped_column(Double)
 
 
 #: API key scopes: `read` (GET), `submit` (uploads, jobs), `admin` (keys, deletion, paths).

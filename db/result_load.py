@@ -33,6 +33,14 @@ def _nan(v: float | None) -> float:
     return float("nan") if v is None else float(v)
 
 
+def _from_kelvin(v: float | None, unit: str | None) -> float:
+    """A stored kelvin temperature back in the radiometry `unit` (NaN for `counts`, inverse of
+    `store.to_kelvin`)."""
+    if v is None:
+        return float("nan")
+    return float(v) - 273.15 if unit == "degC" else float(v)
+
+
 def load_building_result(
     session: Session, *, job_id: uuid.UUID | str, model_id: int, building_gml_id: str
 ) -> BuildingResult:
@@ -87,6 +95,13 @@ def load_building_result(
             best_resolution_m=_nan(r["best_resolution_m"]),
             mean_observations=_nan(r["mean_observations"]),
             reason=r["reason"] or "",
+            typical=_from_kelvin(r["typical_k"], r["unit"]),
+            spread=_nan(r["spread_k"]),
+            hot_share=_nan(r["hot_share"]),
+            window_share=_nan(r["window_share"]),
+            heat_loss_index=_nan(r["heat_loss_index"]),
+            windows=int(r["windows"] or 0),
+            leaks=int(r["leaks"] or 0),
         )
         for r in conn.execute(
             text(
@@ -137,6 +152,10 @@ def load_building_result(
                 peak_delta_k=r["peak_delta_k"],
                 mean_delta_k=r["mean_delta_k"],
                 kind=r["kind"],
+                id=r["anomaly_id"] or "",
+                frames=int(r["frames"] or 0),
+                best_resolution_m=_nan(r["best_resolution_m"]),
+                confidence=_nan(r["confidence"]),
             )
         )
     timings = conn.execute(

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from db.sequence_conditions import parse_conditions
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.crs import UnknownCRSError, resolve_crs
 from workers.pipeline.geometry.manifest import (
@@ -313,6 +314,7 @@ def parse_manifest(d: Any, root: Path | None = None) -> SequenceManifest:
         accuracy=None if d.get("accuracy") is None else _accuracy(d["accuracy"]),
         imu=imu,
         gcps=gcps,
+        conditions=None if d.get("conditions") is None else parse_conditions(d["conditions"], PackageError),
     )
 
 
@@ -357,6 +359,8 @@ def manifest_to_dict(
         }
         for f in m.frames
     ]
+    if m.conditions is not None and m.conditions.to_dict():
+        d["conditions"] = m.conditions.to_dict()
     if m.imu is not None:
         d["imu"] = imu_file
     if m.gcps is not None:

@@ -79,6 +79,13 @@ THERMAL_COLUMNS = (
     "best_resolution_m",
     "mean_observations",
     "reason",
+    "typical_k",
+    "spread_k",
+    "hot_share",
+    "window_share",
+    "heat_loss_index",
+    "windows",
+    "leaks",
 )
 POSE_COLUMNS = (
     "job_id",
@@ -104,6 +111,10 @@ ANOMALY_COLUMNS = (
     "area_m2",
     "peak_delta_k",
     "mean_delta_k",
+    "anomaly_id",
+    "frames",
+    "best_resolution_m",
+    "confidence",
 )
 
 
@@ -280,6 +291,13 @@ def _write(
                 _f(s.best_resolution_m),
                 _f(s.mean_observations),
                 s.reason or None,
+                to_kelvin(s.typical, rad.unit),
+                None if rad.unit == "counts" else _f(s.spread),
+                _f(s.hot_share),
+                _f(s.window_share),
+                None if rad.unit == "counts" else _f(s.heat_loss_index),
+                int(s.windows),
+                int(s.leaks),
             )
         )
     copy_rows(conn, "surface_thermal", THERMAL_COLUMNS, th_rows)
@@ -332,6 +350,10 @@ def _write(
                 float(a.area_m2),
                 float(a.peak_delta_k),
                 float(a.mean_delta_k),
+                a.id or None,
+                int(a.frames),
+                _f(a.best_resolution_m),
+                _f(a.confidence),
             )
         )
     copy_rows(conn, "thermal_anomaly", ANOMALY_COLUMNS, an_rows)

@@ -10,9 +10,9 @@ calibrate + orient as one task per sequence, one task per building unit, then fi
   and time delay once per sequence against those buildings
   (`orientation.calibration.calibrate_sequence`). An accepted calibration gives the units
   calibrated priors and a-priori accuracy; `orientation.json` keeps the manifest-only priors.
-- `orient(ingested, calibrated, options) -> Oriented`: close-range sequences after an accepted
-  calibration: every frame's pose refined in blocks of feature tracks and a bundle adjustment
-  with those buildings (`orientation.sequence.orient_sequence`); the units refine from it.
+- `orient(ingested, calibrated, options) -> Oriented`: close-range sequences, calibrated or not:
+  every frame's pose refined in blocks of feature tracks and a bundle adjustment with those
+  buildings (`orientation.sequence.orient_sequence`); the units refine from it.
 - `plan(ingested, calibrated, oriented, options) -> Planned`: which frames see which building
   (`plan.plan_units`): one `BuildingUnit` per building.
 - `run_unit(unit) -> BuildingResult | UnitFailure`: one building (`units.run_building_unit`); a
@@ -77,9 +77,9 @@ class RunOptions:
         plan: planning options.
         calibrate: with refinement, calibrate the sequence (mounting, GNSS offset, time delay)
             before the units, which then refine from the calibrated priors.
-        orient: with refinement and an accepted calibration, orient close-range sequences
-            (drives) in blocks (feature tracks, bundle adjustment with the model) before the
-            units, which then refine from those poses.
+        orient: with refinement, orient close-range sequences (drives, terrestrial) in blocks
+            (feature tracks, bundle adjustment with the model) before the units, from the
+            calibrated priors or the manifest's; the units then refine from those poses.
         buildings: ids of the top-level buildings to texture (None: all the sequence sees).
         workers: processes for the building units in one process (`citytherm run`; 1: in this
             process).
@@ -105,12 +105,15 @@ class RunOptions:
         resolution_px_per_m: float | None = None,
         theme: str | None = None,
         refine: bool | None = None,
+        anomalies: bool | None = None,
         **fields: Any,
     ) -> RunOptions:
         """Options from the job's few headline values (as the command line gives them); the
         others keep their defaults or come in `fields`. `refine=True` uses the default
-        refinement options, False none."""
+        refinement options, False none; `anomalies=False` skips the thermal analysis."""
         unit: UnitOptions = fields.pop("unit", UnitOptions())
+        if anomalies is not None:
+            unit = replace(unit, anomalies=replace(unit.anomalies, enabled=bool(anomalies)))
         if resolution_px_per_m is not None:
             unit = replace(unit, texel=replace(unit.texel, resolution_px_per_m=float(resolution_px_per_m)))
         if theme is not None:
@@ -346,9 +349,9 @@ def calibrate(ingested: Ingested, options: RunOptions, caster: RayCaster | None 
 
 
 def orients(options: RunOptions, calibrated: Calibrated, platform: str) -> bool:
-    """True when the orient stage runs: refinement and `options.orient` on, an accepted
-    calibration, a close-range platform (`orientation.sequence.SEQUENCE_PLATFORMS`)."""
-    return options.refine and options.orient and calibrated.accepted and platform in SEQUENCE_PLATFORMS
+    """True when the orient stage runs: refinement and `options.orient` on, a close-range platform
+    (`orientation.sequence.SEQUENCE_PLATFORMS`), the calibration accepted or not."""
+    return options.refine and options.orient and platform in SEQUENCE_PLATFORMS
 
 
 def orient(
@@ -358,8 +361,8 @@ def orient(
     progress: Progress = no_progress,
     caster: RayCaster | None = None,
 ) -> Oriented:
-    """The orient stage: `orient_sequence` over every frame, from the calibrated priors with their
-    accuracy, against the buildings near the cameras (`caster`, built here when None).
+    """The orient stage: `orient_sequence` over every frame from the priors and accuracy of
+    `calibrated` (calibrated or the manifest's), against the buildings near the cameras (`caster`).
 
     An orientation that raises is reported, not fatal: the units then refine from the priors.
     """
@@ -378,7 +381,7 @@ def orient(
         )
     except Exception as exc:  # reported in report.json: the job goes on
         return Oriented(None, {"run": False, "reason": f"failed: {type(exc).__name__}: {exc}"})
-    return Oriented(so, {"run": True, **so.to_dict()})
+    return Oriented(so, {"run": True, **so.to_dict("calibrated" if calibrated.accepted else "manifest")})
 
 
 def unit_options(options: RunOptions, calibrated: Calibrated) -> UnitOptions:
@@ -477,6 +480,8 @@ def finish(
     }
     if split_half is not None:
         job["split_half"] = dict(split_half)
+    if ingested.manifest.conditions is not None:  # the survey's weather (`citytherm compare`)
+        job["conditions"] = ingested.manifest.conditions.to_dict()
     return write_results_folder(
         out_dir,
         buildings=ingested.buildings,
@@ -489,6 +494,7 @@ def finish(
         theme=options.theme,
         texel=options.unit.texel,
         display=options.display,
+        anomalies=options.unit.anomalies.enabled,
         frames_of=frames_of,
         timings_s=timings,
         job=job,

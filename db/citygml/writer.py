@@ -90,12 +90,30 @@ class _BuildingWriter:
     """Builds the lxml element of one building (parts included)."""
 
     def __init__(
-        self, srs_name: str | None, extra: Mapping[str, Sequence[Appearance]], sdw: SurfaceDataWriter
+        self,
+        srs_name: str | None,
+        extra: Mapping[str, Sequence[Appearance]],
+        sdw: SurfaceDataWriter,
+        surface_attributes: Mapping[str, Mapping[str, Any]] | None = None,
     ):
         self.srs_name = srs_name
         self.extra = extra
         self.sdw = sdw
+        self.surface_attributes = surface_attributes if surface_attributes is not None else {}
         self.ids: set[str] = set()
+
+    def _surface_generics(self, surf: etree._Element, polys: Sequence[Polygon]) -> None:
+        """Generic attributes of a thematic surface from its polygons' `surface_attributes`:
+        integers summed over the polygons, other values from the first polygon that has them."""
+        merged: dict[str, Any] = {}
+        for p in polys:
+            for k, v in self.surface_attributes.get(p.id, {}).items():
+                if isinstance(v, int) and not isinstance(v, bool) and k in merged:
+                    merged[k] += v
+                else:
+                    merged.setdefault(k, v)
+        for k, v in merged.items():
+            self._generic(surf, k, v)
 
     def _id(self, value: str | None) -> str | None:
         """Id as written; None when missing or already used in this building."""
@@ -274,6 +292,8 @@ class _BuildingWriter:
             sid = self._id(key[1]) if key[1] else None
             if sid:
                 surf.set(_GML_ID, sid)
+            if self.surface_attributes:
+                self._surface_generics(surf, polys)
             for lod in (2, 3, 4):
                 sel = [p for p in polys if p.lod == lod]
                 if sel:
@@ -304,6 +324,7 @@ def write_citygml(
     model_appearances: Sequence[Appearance] = (),
     name: str | None = None,
     trailing_appearances: Iterable[Appearance] = (),
+    surface_attributes: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> int:
     """Write buildings as a CityGML 2.0 file, streamed; returns the number of buildings written.
 
@@ -323,6 +344,10 @@ def write_citygml(
             only once the buildings are written: the `late_appearances` list of
             `reader.open_model`, filled while `buildings` is consumed. Surface data they share
             with a building's appearance are written there and referenced by `xlink:href`.
+        surface_attributes: generic attributes (`gen:*Attribute`, name -> int, float or string)
+            of thematic surfaces (`bldg:WallSurface`, ...), keyed by the id of a polygon they
+            hold (e.g. a job's facade figures); a surface of several polygons sums integers and
+            takes other values from its first polygon that has them.
     """
     extra = extra_appearances or {}
     sdw = SurfaceDataWriter()
@@ -351,7 +376,7 @@ def write_citygml(
                 xf.write(member, pretty_print=True)
             for b in buildings:
                 member = etree.Element(f"{{{CORE}}}cityObjectMember", nsmap=NSMAP)
-                member.append(_BuildingWriter(srs_name, extra, sdw).building(b, srs_name))
+                member.append(_BuildingWriter(srs_name, extra, sdw, surface_attributes).building(b, srs_name))
                 xf.write(member, pretty_print=True)
                 n += 1
             for app in trailing_appearances:

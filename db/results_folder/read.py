@@ -274,6 +274,13 @@ def _surface_stats(entry: dict[str, Any], where: str) -> tuple[SurfaceStats, ...
                     best_resolution_m=_num(s.get("best_resolution_m")),
                     mean_observations=_num(s.get("mean_observations")),
                     reason=str(s.get("reason", "")),
+                    typical=_num(s.get("typical")),
+                    spread=_num(s.get("spread")),
+                    hot_share=_num(s.get("hot_share")),
+                    window_share=_num(s.get("window_share")),
+                    heat_loss_index=_num(s.get("heat_loss_index")),
+                    windows=int(s.get("windows") or 0),
+                    leaks=int(s.get("leaks") or 0),
                 )
             )
         except (TypeError, ValueError) as exc:
@@ -337,6 +344,10 @@ def _anomalies(path: Path, processed: set[str]) -> dict[str, tuple[Anomaly, ...]
                     peak_delta_k=float(props["peak_delta_k"]),
                     mean_delta_k=float(props["mean_delta_k"]),
                     kind=str(props.get("kind") or "leak"),
+                    id=str(props.get("id") or ""),
+                    frames=int(props.get("frames") or 0),
+                    best_resolution_m=_num(props.get("best_resolution_m")),
+                    confidence=_num(props.get("confidence")),
                 )
             )
         except (KeyError, TypeError, ValueError) as exc:

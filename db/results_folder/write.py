@@ -1,5 +1,5 @@
 """Writing a job's results folder (`docs/results-format.md`): texture tiles, `textured.gml`,
-`orientation.json`, `report.json`.
+`orientation.json`, `report.json`, `anomalies.geojson`.
 
 In: `BuildingResult`s of the building units, the buildings, the prior poses and the manifest.
 Out: files under the results folder. File I/O only; no numerical work beyond colour mapping.
@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,10 +20,11 @@ import numpy as np
 from db.citygml.writer import write_citygml
 from db.surface_checks import jsonable
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture
+from workers.pipeline.geometry.crs import UnknownCRSError, horizontal_epsg, vertical_epsg
 from workers.pipeline.geometry.manifest import Radiometry, SequenceManifest
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.options import options_to_dict
-from workers.pipeline.results import BuildingResult, TextureTile
+from workers.pipeline.results import Anomaly, BuildingResult, TextureTile
 from workers.pipeline.texture.texel import TexelOptions
 
 ORIENTATION_FORMAT = "citytherm-orientation/1"
@@ -41,13 +43,58 @@ def write_json(path: Path, data: Any) -> None:
         raise ResultsWriteError(f"{path}: {exc}") from exc
 
 
+def geojson_crs_name(srs_name: str) -> str:
+    """The name of the model CRS as GeoJSON readers (GDAL, QGIS) resolve it: an OGC URN of its
+    EPSG codes, compound with the height system where the model names one
+    (`urn:ogc:def:crs,crs:EPSG::25832,crs:EPSG::7837` for the ADV name of ETRS89 / UTM 32N +
+    DHHN2016); the srsName as it is when it has no EPSG code."""
+    try:
+        h, v = horizontal_epsg(srs_name), vertical_epsg(srs_name)
+    except UnknownCRSError:
+        return srs_name
+    if h is None:
+        return srs_name
+    return f"urn:ogc:def:crs,crs:EPSG::{h},crs:EPSG::{v}" if v is not None else f"urn:ogc:def:crs:EPSG::{h}"
+
+
 def anomalies_document(features: Sequence[Mapping[str, Any]], srs_name: str | None) -> dict[str, Any]:
     """The `anomalies.geojson` document: a FeatureCollection of 3D polygons in the model CRS,
-    named by a `crs` member when the CRS is known (`docs/results-format.md`)."""
+    named by a `crs` member when the CRS is known (`docs/results-format.md`): `name` as GDAL
+    resolves it (`geojson_crs_name`), `srsName` the model's own name."""
     doc: dict[str, Any] = {"type": "FeatureCollection", "features": list(features)}
     if srs_name:
-        doc["crs"] = {"type": "name", "properties": {"name": srs_name}}
+        doc["crs"] = {"type": "name", "properties": {"name": geojson_crs_name(srs_name), "srsName": srs_name}}
     return doc
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def anomaly_feature(a: Anomaly) -> dict[str, Any]:
+    """One `anomalies.geojson` feature (`docs/results-format.md`): the closed 3D outline as a
+    `Polygon` in the model CRS and the detector's figures as properties."""
+    ring = np.asarray(a.outline, dtype=np.float64).reshape(-1, 3)
+    if len(ring) and not np.array_equal(ring[0], ring[-1]):
+        ring = np.vstack([ring, ring[:1]])
+    return {
+        "type": "Feature",
+        "id": a.id or None,
+        "geometry": {"type": "Polygon", "coordinates": [ring.tolist()]} if len(ring) >= 4 else None,
+        "properties": {
+            "id": a.id or None,
+            "building": a.building_id,
+            "surface": a.polygon_id,
+            "kind": a.kind,
+            "centre": [float(v) for v in np.asarray(a.centre, dtype=np.float64).reshape(3)],
+            "area_m2": float(a.area_m2),
+            "peak_delta_k": float(a.peak_delta_k),
+            "mean_delta_k": float(a.mean_delta_k),
+            "frames": int(a.frames),
+            "best_resolution_m": _finite(a.best_resolution_m),
+            "confidence": _finite(a.confidence),
+        },
+    }
 
 
 def write_tile(out_dir: Path, tile: TextureTile) -> Path:
@@ -114,18 +161,63 @@ def write_textured_gml(
     srs_name: str | None,
     display: bool,
 ) -> int:
-    """Write `textured.gml`: the textured buildings, complete, with the job's appearances."""
+    """Write `textured.gml`: the textured buildings, complete, with the job's appearances and,
+    on every analysed surface, its facade figures as generic attributes (`surface_attributes`)."""
     extra: dict[str, list[Appearance]] = {}
+    attributes: dict[str, dict[str, Any]] = {}
     for b in buildings:
         r = results.get(b.id)
         if r is None or r.appearance is None:
             continue
         extra[b.id] = [r.appearance, display_appearance(r.appearance)] if display else [r.appearance]
+        attributes.update(surface_attributes(r))
     textured = [b for b in buildings if b.id in extra]
     try:
-        return write_citygml(path, textured, srs_name=srs_name, extra_appearances=extra)
+        return write_citygml(
+            path, textured, srs_name=srs_name, extra_appearances=extra, surface_attributes=attributes
+        )
     except OSError as exc:
         raise ResultsWriteError(f"{path}: {exc}") from exc
+
+
+FIGURES = ("typical", "spread", "hot_share", "window_share", "heat_loss_index", "windows", "leaks")
+
+
+def facade_attributes(figures: Mapping[str, Any], leak_ids: Sequence[str]) -> dict[str, Any] | None:
+    """The generic attributes of one analysed surface (`surface_attributes`) from its facade
+    figures (`FIGURES`: `SurfaceStats` fields) and the ids of its leak candidates; None when the
+    surface has no typical temperature (not observed, analysis off)."""
+    typical = figures.get("typical")
+    if typical is None or not np.isfinite(typical):
+        return None
+    attrs: dict[str, Any] = {"thermal_typical": float(typical)}
+    for key in ("spread", "hot_share", "window_share", "heat_loss_index"):
+        v = figures.get(key)
+        if v is not None and np.isfinite(v):
+            attrs[f"thermal_{key}"] = float(v)
+    attrs["thermal_windows"] = int(figures.get("windows") or 0)
+    attrs["thermal_leaks"] = int(figures.get("leaks") or 0)
+    if leak_ids:
+        attrs["thermal_leak_ids"] = " ".join(leak_ids)
+    return attrs
+
+
+def surface_attributes(r: BuildingResult) -> dict[str, dict[str, Any]]:
+    """The facade figures of a building's analysed surfaces as CityGML generic attributes, by
+    polygon id (`docs/results-format.md`): `thermal_typical`, `thermal_spread` (radiometry unit),
+    `thermal_hot_share`, `thermal_window_share`, `thermal_heat_loss_index`, `thermal_windows`,
+    `thermal_leaks`, and `thermal_leak_ids` (the ids of its leak candidates in
+    `anomalies.geojson`). Surfaces without figures (not observed, analysis off) get none."""
+    leak_ids: dict[str, list[str]] = {}
+    for a in r.anomalies:
+        if a.kind == "leak" and a.id:
+            leak_ids.setdefault(a.polygon_id, []).append(a.id)
+    out: dict[str, dict[str, Any]] = {}
+    for s in r.surfaces:
+        attrs = facade_attributes({k: getattr(s, k) for k in FIGURES}, leak_ids.get(s.polygon_id, ()))
+        if attrs is not None:
+            out[s.polygon_id] = attrs
+    return out
 
 
 def orientation_document(
@@ -188,6 +280,7 @@ def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
             "frames_withheld": list(r.frames_withheld),
         },
         "timings_s": dict(r.timings_s),
+        "anomalies": {k: sum(1 for a in r.anomalies if a.kind == k) for k in ("leak", "window", "bridge")},
         "surfaces": [
             {
                 "id": s.polygon_id,
@@ -204,6 +297,13 @@ def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
                 "best_resolution_m": s.best_resolution_m,
                 "mean_observations": s.mean_observations,
                 **({"reason": s.reason} if s.reason else {}),
+                "typical": s.typical,
+                "spread": s.spread,
+                "hot_share": s.hot_share,
+                "window_share": s.window_share,
+                "heat_loss_index": s.heat_loss_index,
+                "windows": s.windows,
+                "leaks": s.leaks,
             }
             for s in r.surfaces
         ],
@@ -253,6 +353,7 @@ def write_results_folder(
     write_time_offset_s: float = 0.0,
     started: float | None = None,
     radiometry: Radiometry | None = None,
+    anomalies: bool = True,
 ) -> dict[str, Any]:
     """Write a whole results folder (`docs/results-format.md`) from building results: the
     in-process run and the service (results loaded from the database) share it.
@@ -265,8 +366,9 @@ def write_results_folder(
     `calibration` block (None: `{"run": false}`). `texel` (the units' texel-grid options) goes
     into the report whole, so that readers lay the same grids. `radiometry` (the tiles'; default:
     the results') goes into the report as `radiometry` (unit, scale, offset), so that the tiles
-    keep their physical meaning when the folder is read back (`db.results_import`). Returns the
-    `report.json` document.
+    keep their physical meaning when the folder is read back (`db.results_import`). With
+    `anomalies`, the results' anomalies go into `anomalies.geojson` (by building, with the
+    top-level building id). Returns the `report.json` document.
     """
     t0 = started if started is not None else time.perf_counter()
     out = Path(out_dir)
@@ -286,9 +388,17 @@ def write_results_folder(
                 )
     step(1, 4)
     by_id = {r.building_id: r for r in results}
+    order = {b.id: k for k, b in enumerate(buildings)}
     write_textured_gml(out / "textured.gml", buildings, by_id, srs_name, display)
     step(2, 4)
     write_json(out / "orientation.json", orientation_document(manifest, priors, results, mounting))
+    if anomalies:
+        features = [
+            anomaly_feature(replace(a, building_id=r.building_id))
+            for r in sorted(results, key=lambda r: order.get(r.building_id, len(order)))
+            for a in r.anomalies
+        ]
+        write_json(out / "anomalies.geojson", anomalies_document(features, srs_name))
     step(3, 4)
     timings = timings_s if timings_s is not None else {}
     timings["write"] = time.perf_counter() - t0 + write_time_offset_s
@@ -297,7 +407,6 @@ def write_results_folder(
         for key, val in r.timings_s.items():
             stage_units[key] = stage_units.get(key, 0.0) + float(val)
     frames_of = frames_of or {}
-    order = {b.id: k for k, b in enumerate(buildings)}
     doc: dict[str, Any] = {
         "format": REPORT_FORMAT,
         "theme": theme,

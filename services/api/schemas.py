@@ -101,6 +101,9 @@ class TextureInputs(BaseModel):
     orient: bool = Field(
         _DEFAULTS.orient, description="With refinement: orient drives in blocks before the buildings."
     )
+    anomalies: bool = Field(
+        True, description="Analyse the textures: windows, heat-leak candidates, facade figures."
+    )
 
     def run_options(self) -> RunOptions:
         """The job's `RunOptions` (as `citytherm run` builds them from its options)."""
@@ -110,6 +113,7 @@ class TextureInputs(BaseModel):
             refine=self.refine,
             calibrate=self.calibrate,
             orient=self.orient,
+            anomalies=self.anomalies,
             buildings=tuple(self.buildings) if self.buildings else None,
         )
 

@@ -33,6 +33,11 @@ OUTPUTS: dict[str, tuple[str, str, str]] = {
     "results": ("results.zip", "application/zip", "The results folder, zipped (docs/results-format.md)"),
     "orientation": ("results/orientation.json", "application/json", "Estimated mounting (orientation.json)"),
     "report": ("results/report.json", "application/json", "Calibration, orientation and texel report"),
+    "anomalies": (
+        "results/anomalies.geojson",
+        "application/geo+json",
+        "Windows, heat-leak candidates and thermal bridges with 3D outlines (anomalies.geojson)",
+    ),
 }
 
 

@@ -8,7 +8,17 @@ from __future__ import annotations
 
 import typer
 
-from services.cli import apikey_cmd, db_cmd, model_cmd, results_cmd, run_cmd, serve_cmd, synth_cmd, worker_cmd
+from services.cli import (
+    apikey_cmd,
+    compare_cmd,
+    db_cmd,
+    model_cmd,
+    results_cmd,
+    run_cmd,
+    serve_cmd,
+    synth_cmd,
+    worker_cmd,
+)
 
 app = typer.Typer(
     name="citytherm",
@@ -18,7 +28,17 @@ app = typer.Typer(
     pretty_exceptions_show_locals=False,
 )
 
-for _module in (model_cmd, synth_cmd, run_cmd, db_cmd, results_cmd, apikey_cmd, serve_cmd, worker_cmd):
+for _module in (
+    model_cmd,
+    synth_cmd,
+    run_cmd,
+    compare_cmd,
+    db_cmd,
+    results_cmd,
+    apikey_cmd,
+    serve_cmd,
+    worker_cmd,
+):
     _module.register(app)
 
 

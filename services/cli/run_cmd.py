@@ -86,6 +86,15 @@ def summary_table(summary: RunSummary, limit: int = 30) -> Table:
     return table
 
 
+def anomalies_line(summary: RunSummary) -> str:
+    """One line on the thermal analysis: leak candidates, windows and bridges found."""
+    kinds = [a.kind for r in summary.results for a in r.anomalies]
+    return (
+        f"thermal anomalies: {kinds.count('leak')} leak candidates, {kinds.count('window')} windows, "
+        f"{kinds.count('bridge')} thermal bridges (anomalies.geojson)"
+    )
+
+
 def run_with_progress(
     city: Path, package: Path, out: Path, options: RunOptions, console: Console
 ) -> RunSummary:
@@ -135,6 +144,12 @@ def run(
         "adjustment of all frames with the model before the buildings).",
     ),
     no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
+    no_anomalies: bool = typer.Option(
+        False,
+        "--no-anomalies",
+        help="Skip the thermal analysis (windows, heat-leak candidates, facade figures; "
+        "anomalies.geojson is then not written).",
+    ),
     split_half: bool = typer.Option(
         False,
         "--split-half",
@@ -167,6 +182,7 @@ def run(
         resolution_px_per_m=resolution,
         theme=theme,
         refine=False if no_refine else None,  # None: the library's default (on)
+        anomalies=False if no_anomalies else None,
         buildings=ids,
         workers=workers,
         calibrate=not no_calibrate,
@@ -190,6 +206,8 @@ def run(
         + ", ".join(f"{k} {v:.1f} s" for k, v in t.items())
         + f"; results in {summary.out_dir}"
     )
+    if options.unit.anomalies.enabled:
+        console.print(anomalies_line(summary))
     if not options.refine:
         console.print("poses: GNSS/INS priors (refinement off)")
     elif summary.calibration is not None:

@@ -43,7 +43,8 @@ def test_landing_conformance_processes_openapi(api: ApiServer) -> None:
         assert [p["id"] for p in procs] == ["texture"]
         desc = c.get("/processes/texture").json()
         assert set(desc["inputs"]) == {
-            "model", "sequence", "theme", "resolution", "buildings", "refine", "calibrate", "orient"
+            "model", "sequence", "theme", "resolution", "buildings", "refine", "calibrate", "orient",
+            "anomalies",
         }  # fmt: skip
         assert desc["inputs"]["model"]["minOccurs"] == 1 and desc["inputs"]["theme"]["minOccurs"] == 0
         assert desc["outputs"]["results"]["schema"]["contentMediaType"] == "application/zip"
@@ -229,12 +230,14 @@ def test_results_only_after_success(api: ApiServer, berlin, db_engine) -> None:
         (folder / "results").mkdir(parents=True)
         (folder / "results" / "report.json").write_text('{"ok": true}')
         (folder / "results" / "orientation.json").write_text("{}")
+        (folder / "results" / "anomalies.geojson").write_text('{"type": "FeatureCollection", "features": []}')
         (folder / "results.zip").write_bytes(b"PK\x05\x06" + b"\0" * 18)
         outputs = c.get(f"/jobs/{job}/results").json()
         assert outputs["results"]["type"] == "application/zip"
         assert outputs["results"]["href"].endswith(f"/jobs/{job}/results/results.zip")
         assert {k: v["type"] for k, v in outputs.items()} == {
-            "results": "application/zip", "orientation": "application/json", "report": "application/json"
+            "results": "application/zip", "orientation": "application/json", "report": "application/json",
+            "anomalies": "application/geo+json",
         }  # fmt: skip
         assert c.get(outputs["results"]["href"]).content == (folder / "results.zip").read_bytes()
         assert c.get(outputs["report"]["href"]).json() == {"ok": True}

@@ -24,7 +24,7 @@ TABLES = {
     "surface_data", "tex_image", "texture_param", "surface_thermal", "thermal_anomaly", "api_key",
     "model_import", "sequence_upload",
 }  # fmt: skip
-VIEWS = {"facade_thermal", "building_thermal"}
+VIEWS = {"facade_thermal", "building_thermal", "thermal_anomalies", "surface_thermal_change"}
 
 
 def _admin(sql: str) -> None:

@@ -86,11 +86,18 @@ def make_result(building: Building, theme: str, seed: int, radiometry: Radiometr
             if obs
             else {}
         )
+        figures = (
+            {"typical": 269.0 + k, "spread": 0.4, "hot_share": 0.02, "window_share": 0.1,
+             "heat_loss_index": 0.03, "windows": 2, "leaks": 1}
+            if obs
+            else {}
+        )  # fmt: skip
         stats.append(
             SurfaceStats(
-                p.id, building.id, p.surface_class, 200, obs, (0, 1) if obs else (), 0.05, 30.0, temp
+                p.id, building.id, p.surface_class, 200, obs, (0, 1) if obs else (), 0.05, 30.0, temp,
+                **figures,
             )
-        )
+        )  # fmt: skip
     c0 = building.bounds()[0] - np.array([20.0, 20.0, -2.0])
     poses = tuple(
         FramePose(i, building.id, Pose(np.eye(3), c0 + i), "refined" if i else "prior", 0.4 + i, 20 + i)
@@ -98,7 +105,10 @@ def make_result(building: Building, theme: str, seed: int, radiometry: Radiometr
     )
     w = walls[0].exterior.coords
     outline = np.vstack([w[:3], w[:1]])
-    anomaly = Anomaly(building.id, walls[0].id, outline, outline[:3].mean(axis=0), 1.5, 4.0, 2.5)
+    anomaly = Anomaly(
+        building.id, walls[0].id, outline, outline[:3].mean(axis=0), 1.5, 4.0, 2.5,
+        id=f"{walls[0].id}-leak-0", frames=3, best_resolution_m=0.04, confidence=0.8,
+    )  # fmt: skip
     return BuildingResult(
         building.id, app, tiles, radiometry, tuple(stats), poses, (anomaly,), {"texture": 1.0, "orient": 2.0}
     )
@@ -184,12 +194,16 @@ def test_export_equals_in_process_results(model, tmp_path) -> None:
                 np.testing.assert_allclose(tg.ring_coords[rid], st, rtol=0, atol=1e-12)
     # anomalies.geojson in the results format
     doc = json.loads((tmp_path / "db" / "anomalies.geojson").read_text())
-    assert out.anomalies == 1 and doc["crs"]["properties"]["name"] == header.srs_name
+    assert out.anomalies == 1 and doc["crs"]["properties"]["srsName"] == header.srs_name
+    assert doc["crs"]["properties"]["name"].startswith("urn:ogc:def:crs")  # as GDAL resolves it
     (feat,) = doc["features"]
     (an,) = result.anomalies
     assert feat["properties"]["building"] == building.id and feat["properties"]["surface"] == an.polygon_id
     np.testing.assert_array_equal(np.array(feat["geometry"]["coordinates"][0]), an.outline)
     assert feat["properties"]["peak_delta_k"] == an.peak_delta_k
+    assert (feat["properties"]["id"], feat["properties"]["frames"], feat["properties"]["confidence"]) == (
+        an.id, an.frames, an.confidence
+    )  # fmt: skip
     for t in result.tiles:
         data = (tmp_path / "db" / t.name).read_bytes()
         assert data == (ref / t.name).read_bytes() == cv2.imencode(".png", t.dn)[1].tobytes()
@@ -460,6 +474,8 @@ def test_stored_result_reads_back(model) -> None:
             sr.frames_used,
         )
         assert sb.mean_resolution_m == sr.mean_resolution_m and dict(sb.temperature) == dict(sr.temperature)
+        figures = ("typical", "spread", "hot_share", "window_share", "heat_loss_index", "windows", "leaks")
+        np.testing.assert_equal([getattr(sb, f) for f in figures], [getattr(sr, f) for f in figures])
     for pb, pr in zip(back.poses, r.poses, strict=True):
         assert (pb.frame, pb.status, pb.matches, pb.rms_px) == (pr.frame, pr.status, pr.matches, pr.rms_px)
         np.testing.assert_array_equal(pb.pose.center, pr.pose.center)
@@ -472,3 +488,6 @@ def test_stored_result_reads_back(model) -> None:
         ar.peak_delta_k,
         ar.kind,
     )
+    assert (ab.id, ab.frames, ab.best_resolution_m, ab.confidence) == (
+        ar.id, ar.frames, ar.best_resolution_m, ar.confidence
+    )  # fmt: skip

@@ -445,6 +445,9 @@ def test_a_folder_imported_again_with_fewer_buildings_leaves_the_job_with_its_bu
     for f in orient["frames"]:
         f["refined"] = [r for r in f["refined"] if r["building"] == "B1"]
     (folder / "orientation.json").write_text(json.dumps(orient))
+    anomalies = json.loads((folder / "anomalies.geojson").read_text())
+    anomalies["features"] = [f for f in anomalies["features"] if f["properties"]["building"] == "B1"]
+    (folder / "anomalies.geojson").write_text(json.dumps(anomalies))
     again = import_results(db_engine, folder, model=MODEL)
     assert again.job_id == first.job_id and (again.buildings, again.failed) == (1, 1)
     rows = job_rows(db_engine, first.job_id)

@@ -60,6 +60,16 @@ class SurfaceStats:
         best_resolution_m: finest local resolution among the observations of its texels (m/px).
         mean_observations: mean number of observations a fused texel rests on.
         reason: why a surface that frames see got no or few texels ("" otherwise).
+        typical: robust typical value of the surface (median of its observed texels outside
+            windows, radiometry unit; NaN: too few texels; `anomalies.typical`).
+        spread: robust spread of those texels, 1.4826 · MAD of their residual after linear
+            thermal bridges are removed (radiometry unit).
+        hot_share: share of the observed area outside windows warmer than `typical` +
+            `AnomalyOptions.hot_delta_k` (0-1; NaN: not analysed).
+        window_share: share of the observed area covered by detected windows (0-1).
+        heat_loss_index: `docs/anomalies.md`: area-weighted mean excess over `typical` of the
+            leak candidates, per observed m², kelvin (0: no candidate; NaN: not analysed).
+        windows, leaks: numbers of detected windows and leak candidates on the surface.
     """
 
     polygon_id: str
@@ -75,6 +85,13 @@ class SurfaceStats:
     best_resolution_m: float = float("nan")
     mean_observations: float = float("nan")
     reason: str = ""
+    typical: float = float("nan")
+    spread: float = float("nan")
+    hot_share: float = float("nan")
+    window_share: float = float("nan")
+    heat_loss_index: float = float("nan")
+    windows: int = 0
+    leaks: int = 0
 
     @property
     def observed_share(self) -> float:
@@ -99,12 +116,25 @@ class FramePose:
 
 @dataclass(frozen=True, eq=False)
 class Anomaly:
-    """A thermal anomaly (heat-leak candidate) on one surface.
+    """A thermal anomaly on one surface: a heat-leak candidate (`kind` "leak"), a detected window
+    ("window") or a linear thermal bridge ("bridge": pipes, slab edges, corners).
 
     Attributes:
-        outline: `(N, 3)` closed 3D ring on the surface, model CRS.
-        centre: `(3,)` model CRS.
-        area_m2, peak_delta_k, mean_delta_k: size and contrast against the surface's typical value.
+        building_id: the `Building`/`BuildingPart` owning the polygon.
+        polygon_id: the surface's polygon id.
+        outline: `(N, 3)` closed 3D ring on the surface plane, model CRS, metres.
+        centre: `(3,)` model CRS (the peak for a leak, the centroid for a window).
+        area_m2: area inside the outline, m².
+        peak_delta_k, mean_delta_k: contrast of the region (radiometry unit difference: kelvin
+            for kelvin/celsius input; signed, windows are usually < 0): for a leak the fitted
+            amplitude over its local background (corrected for the blur of coarse textures) and
+            the mean excess inside the outline over the surface's typical value; for windows and
+            bridges against the typical value (`docs/anomalies.md`).
+        kind: "leak", "window" or "bridge".
+        id: stable id within a job (`<polygon id>-<kind>-<n>`).
+        frames: number of distinct frames that observed the region.
+        best_resolution_m: finest local resolution among those observations, m/px.
+        confidence: 0-1, how sure the detector is (contrast over noise, area, frames).
     """
 
     building_id: str
@@ -115,6 +145,10 @@ class Anomaly:
     peak_delta_k: float
     mean_delta_k: float
     kind: str = "leak"
+    id: str = ""
+    frames: int = 0
+    best_resolution_m: float = float("nan")
+    confidence: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)

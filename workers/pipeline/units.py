@@ -6,9 +6,11 @@ occluding neighbours, the camera, the frames that see it with their prior `Pose`
 CRS) and times, a picklable `FrameSource` (float32 physical frames), the radiometry, options and,
 when the sequence orientation ran, its part of it.
 Out: `run_building_unit(unit)` -> `results.BuildingResult` (poses, atlas tiles with texture
-coordinates, per-surface statistics, timings): the poses refined against the building
-(`orientation.building.refine_building`, unless `options.refine` is None), then every surface
-textured (`texture_unit`) and packed. A unit keeps no global state and writes no files.
+coordinates, per-surface statistics and facade figures, anomalies, timings): the poses refined
+against the building (`orientation.building.refine_building`, unless `options.refine` is None),
+then every surface textured (`texture_unit`), packed, and analysed for thermal anomalies
+(`anomalies.analyse_surface`: windows, leak candidates, facade figures). A unit keeps no global
+state and writes no files.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Protocol
 
 import numpy as np
 
+from workers.pipeline.anomalies import AnomalyOptions, SurfaceAnalysis, analyse_surface
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import Building, Polygon
 from workers.pipeline.geometry.manifest import Accuracy, FrameSource, Radiometry
@@ -51,6 +54,9 @@ class UnitOptions:
     Attributes:
         texel: the texel grids (resolution in texels per metre).
         visibility, fusion, atlas: the texture stages.
+        anomalies: the thermal-anomaly analysis of every fused surface texture (typical
+            temperature, windows, leak candidates, facade figures; `anomalies.enabled` False
+            skips it).
         theme: appearance theme of the textures.
         refine: options of the per-building pose refinement (`orientation.building`); None
             textures with the poses as given (GNSS/INS, calibrated or sequence-oriented).
@@ -64,6 +70,7 @@ class UnitOptions:
     visibility: VisibilityOptions = field(default_factory=VisibilityOptions)
     fusion: FusionOptions = field(default_factory=FusionOptions)
     atlas: AtlasOptions = field(default_factory=AtlasOptions)
+    anomalies: AnomalyOptions = field(default_factory=AnomalyOptions)
     theme: str = "thermal-ir"
     refine: CoregisterOptions | None = field(default_factory=CoregisterOptions)
     max_prior_px: float = 3.0
@@ -208,10 +215,11 @@ _PERCENTILES = {"p05": 5, "p25": 25, "median": 50, "p75": 75, "p95": 95}
 
 def surface_stats(
     grid: TexelGrid, tex: SurfaceTexture, surface_class: str, resolution_px_per_m: float = float("nan"),
-    reason: str = "",
+    reason: str = "", analysis: SurfaceAnalysis | None = None,
 ) -> SurfaceStats:
     """Per-surface statistics of a fused texture (texels inside the polygon only); `reason` says
-    why a surface the frames see has no texel observed."""
+    why a surface the frames see has no texel observed; `analysis` (the anomaly analysis of the
+    texture, if it ran) gives the facade figures."""
     m = grid.mask & tex.observed
     vals = tex.value[m].astype(np.float64)
     temp: dict[str, float] = {}
@@ -235,7 +243,28 @@ def surface_stats(
         best_resolution_m=float(tex.resolution[m].min()) if len(vals) else nan,
         mean_observations=float(tex.count[m].mean()) if len(vals) else nan,
         reason="" if len(vals) else reason,
+        **(_figures(analysis) if analysis is not None else {}),
     )
+
+
+def _figures(a: SurfaceAnalysis) -> dict[str, float | int]:
+    """The facade figures of an anomaly analysis, as `SurfaceStats` fields."""
+    return {
+        "typical": a.typical,
+        "spread": a.spread,
+        "hot_share": a.hot_share,
+        "window_share": a.window_share,
+        "heat_loss_index": a.heat_loss_index,
+        "windows": sum(1 for x in a.anomalies if x.kind == "window"),
+        "leaks": sum(1 for x in a.anomalies if x.kind == "leak"),
+    }
+
+
+def analyse_unit(tex: UnitTextures, options: AnomalyOptions) -> list[SurfaceAnalysis | None]:
+    """The anomaly analysis of every fused surface texture of a unit (None each when disabled)."""
+    if not options.enabled:
+        return [None] * len(tex.grids)
+    return [analyse_surface(g, t, options) for g, t in zip(tex.grids, tex.textures, strict=True)]
 
 
 @dataclass(eq=False)
@@ -348,13 +377,20 @@ def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) ->
         unit.options.atlas,
     )
     t_atlas = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    analyses = analyse_unit(tex, unit.options.anomalies)
+    t_anomalies = time.perf_counter() - t0
     by_id = {
-        g.polygon_id: surface_stats(g, t, p.surface_class, r, tex.reasons.get(p.id, ""))
-        for p, g, t, r in zip(tex.polygons, tex.grids, tex.textures, tex.resolutions, strict=True)
+        g.polygon_id: surface_stats(g, t, p.surface_class, r, tex.reasons.get(p.id, ""), a)
+        for p, g, t, r, a in zip(
+            tex.polygons, tex.grids, tex.textures, tex.resolutions, analyses, strict=True
+        )
     }
     by_id.update({s.polygon_id: s for s in tex.empty})
     stats = tuple(by_id[p.id] for p in unit.building.iter_polygons() if p.id in by_id)
     timings = {"scene": t_scene, "orient": t_orient, **tex.timings_s, "atlas": t_atlas}
+    timings["anomalies"] = t_anomalies
+    anomalies = tuple(x for a in analyses if a is not None for x in a.anomalies)
     return BuildingResult(
         building_id=unit.building.id,
         appearance=appearance,
@@ -362,6 +398,7 @@ def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) ->
         radiometry=unit.radiometry,
         surfaces=stats,
         poses=records,
+        anomalies=anomalies,
         timings_s=timings,
         frames_withheld=tuple(withheld),
     )

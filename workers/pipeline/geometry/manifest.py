@@ -99,6 +99,42 @@ class GroundControl:
     observations: tuple[tuple[int, str, np.ndarray], ...]
 
 
+@dataclass(frozen=True)
+class Conditions:
+    """Conditions of the survey (`conditions` of the manifest; every member optional).
+
+    Attributes:
+        air_temperature_c: outside air temperature during the recording, degrees Celsius (None:
+            not given). Used to normalise the change between two surveys
+            (`workers.pipeline.change`).
+        recorded_at: when the recording started, ISO 8601 with a UTC offset
+            (`2025-01-15T21:30:00+01:00`, `...Z`), as written (None: not given).
+    """
+
+    air_temperature_c: float | None = None
+    recorded_at: str | None = None
+
+    @property
+    def air_temperature_k(self) -> float | None:
+        """`air_temperature_c` in kelvin (None when not given).
+
+        >>> Conditions(air_temperature_c=-3.5).air_temperature_k
+        269.65
+        """
+        if self.air_temperature_c is None:
+            return None
+        return round(self.air_temperature_c + 273.15, 9)
+
+    def to_dict(self) -> dict[str, float | str]:
+        """The manifest's `conditions` object (members that are given only)."""
+        out: dict[str, float | str] = {}
+        if self.air_temperature_c is not None:
+            out["air_temperature_c"] = float(self.air_temperature_c)
+        if self.recorded_at is not None:
+            out["recorded_at"] = self.recorded_at
+        return out
+
+
 @dataclass(frozen=True, eq=False)
 class SequenceManifest:
     """The parsed `sequence.json` (everything but the pixels)."""
@@ -115,6 +151,7 @@ class SequenceManifest:
     imu: ImuSamples | None = None
     gcps: GroundControl | None = None
     format: str = FORMAT
+    conditions: Conditions | None = None  # survey conditions (air temperature), when given
 
 
 class FrameSource(Protocol):

@@ -12,7 +12,7 @@ Pure computation; writing a package and the truth file is `db.synth_files.write_
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -30,20 +30,28 @@ from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
 from workers.pipeline.synth.trajectory import (
     DriveOptions,
     FlightOptions,
+    LineTrajectory,
     PathTrajectory,
+    TerrestrialOptions,
     camera_to_body,
     choose_cluster,
     drive_loop,
+    facade_walk,
     flight_loop,
 )
 from workers.pipeline.synth.truth import SynthTruth
+
+#: the true mounting errors of a hand-held camera with its GNSS/INS (`platform="terrestrial"`)
+#: unless `ErrorOptions` gives them: boresight (degrees about body x, y, z), lever arm (m)
+TERRESTRIAL_BORESIGHT_DEG = (0.5, -1.0, 1.0)
+TERRESTRIAL_LEVER_ARM_M = (0.05, 0.1, -0.15)
 
 
 @dataclass(frozen=True)
 class SynthOptions:
     """Everything `synthesize` needs besides the buildings."""
 
-    platform: Literal["drive", "flight"] = "drive"
+    platform: Literal["drive", "flight", "terrestrial"] = "drive"
     n_frames: int = 100
     seed: int = 0
     buildings: int | tuple[str, ...] = 5  # the cluster: a count (around a central building) or ids
@@ -52,6 +60,7 @@ class SynthOptions:
     camera: Camera | None = None  # None: `default_camera()` (640×512, 45°, mild barrel)
     drive: DriveOptions = field(default_factory=DriveOptions)
     flight: FlightOptions = field(default_factory=FlightOptions)
+    terrestrial: TerrestrialOptions = field(default_factory=TerrestrialOptions)  # a walk along one facade
     errors: ErrorOptions = field(default_factory=ErrorOptions)
     thermal: ThermalOptions = field(default_factory=ThermalOptions)
     sensor: SensorOptions = field(default_factory=SensorOptions)
@@ -178,31 +187,21 @@ def _gcps(
     return GroundControl(points=points, observations=tuple(obs))
 
 
-def synthesize(buildings: Sequence[Building], options: SynthOptions | None = None) -> SynthResult:
-    """Build a synthetic sequence of `buildings` (model CRS, metres).
-
-    Steps: choose the cluster (`options.buildings`), the ground plane (median base of the
-    cluster), the closed drive/flight loop and its `PathTrajectory`; keep the buildings near the
-    loop as the rendered scene (`SceneMesh`, `ThermalScene` from `options.seed`); stamp
-    `n_frames` frames every `frame_interval_s` from `t0`; run the GNSS/INS error model (recorded
-    INS at the stamps, true poses at `stamp − δ` with the true mounting); add GCPs if asked.
-    Nothing is rendered here: `result.frames` renders on access. Raises `SynthError` naming the
-    bad option or input.
-    """
-    o = options or SynthOptions()
-    blds = list(buildings)
-    if not blds:
-        raise SynthError("buildings: none given")
-    if o.n_frames < 1:
-        raise SynthError(f"n_frames must be >= 1, got {o.n_frames}")
-    if o.frame_interval_s <= 0:
-        raise SynthError(f"frame_interval_s must be positive, got {o.frame_interval_s}")
-    if o.platform not in ("drive", "flight"):
-        raise SynthError(f"platform must be 'drive' or 'flight', got {o.platform!r}")
-    cluster = choose_cluster(blds, o.buildings if isinstance(o.buildings, int) else list(o.buildings), o.seed)
-    ground_z = o.ground_z
-    if ground_z is None:
-        ground_z = float(np.median([blds[i].bounds()[0][2] for i in cluster]))
+def _trajectory(
+    blds: Sequence[Building], cluster: list[int], ground_z: float, o: SynthOptions
+) -> tuple[PathTrajectory | LineTrajectory, np.ndarray, list[int], list[int]]:
+    """The platform's true trajectory, the nominal mounting `(3, 3)`, the indices of the buildings
+    rendered (near the path) and the final cluster (a drive loop may add buildings to it)."""
+    if o.platform == "terrestrial":
+        t = o.terrestrial
+        duration = o.frame_interval_s * max(o.n_frames - 1, 1)
+        start, direction = facade_walk(blds, cluster, t, duration)
+        z = ground_z + t.height_m
+        walk = LineTrajectory(start, direction, z, t.speed_mps, t0=o.t0, sway_deg=t.sway_deg, seed=o.seed)
+        path = shapely.LineString([start, start + t.speed_mps * duration * direction])
+        radius = o.scene_radius_m if o.scene_radius_m is not None else 150.0
+        keep = [i for i, b in enumerate(blds) if i in cluster or path.distance(footprint(b)) <= radius]
+        return walk, camera_to_body(t.look_forward_deg, t.look_up_deg), keep, cluster
     if o.platform == "drive":
         loop, cluster = drive_loop(blds, cluster, o.drive)
         height, speed, bank, sway = o.drive.height_m, o.drive.speed_mps, False, o.drive.sway_deg
@@ -223,8 +222,35 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
         M = camera_to_body(o.drive.look_forward_deg, o.drive.look_up_deg)
     else:
         M = camera_to_body(0.0, -(o.flight.look_down_deg - traj.mean_bank_deg))
+    return traj, M, _scene_buildings(blds, loop, radius, set(cluster)), cluster
 
-    keep = _scene_buildings(blds, loop, radius, set(cluster))
+
+def synthesize(buildings: Sequence[Building], options: SynthOptions | None = None) -> SynthResult:
+    """Build a synthetic sequence of `buildings` (model CRS, metres).
+
+    Steps: choose the cluster (`options.buildings`), the ground plane (median base of the
+    cluster), the closed drive/flight loop and its `PathTrajectory`; keep the buildings near the
+    loop as the rendered scene (`SceneMesh`, `ThermalScene` from `options.seed`); stamp
+    `n_frames` frames every `frame_interval_s` from `t0`; run the GNSS/INS error model (recorded
+    INS at the stamps, true poses at `stamp − δ` with the true mounting); add GCPs if asked.
+    Nothing is rendered here: `result.frames` renders on access. Raises `SynthError` naming the
+    bad option or input.
+    """
+    o = options or SynthOptions()
+    blds = list(buildings)
+    if not blds:
+        raise SynthError("buildings: none given")
+    if o.n_frames < 1:
+        raise SynthError(f"n_frames must be >= 1, got {o.n_frames}")
+    if o.frame_interval_s <= 0:
+        raise SynthError(f"frame_interval_s must be positive, got {o.frame_interval_s}")
+    if o.platform not in ("drive", "flight", "terrestrial"):
+        raise SynthError(f"platform must be 'drive', 'flight' or 'terrestrial', got {o.platform!r}")
+    cluster = choose_cluster(blds, o.buildings if isinstance(o.buildings, int) else list(o.buildings), o.seed)
+    ground_z = o.ground_z
+    if ground_z is None:
+        ground_z = float(np.median([blds[i].bounds()[0][2] for i in cluster]))
+    traj, M, keep, cluster = _trajectory(blds, cluster, float(ground_z), o)
     scene = [blds[i] for i in keep]
     mesh = build_scene_mesh(scene)
     thermal = ThermalScene(scene, mesh.polygon_ids, seed=o.seed, options=o.thermal)
@@ -232,7 +258,14 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
     renderer = Renderer(mesh, thermal, camera, ground_z, o.sensor, seed=o.seed)
 
     times = o.t0 + o.frame_interval_s * np.arange(o.n_frames)
-    ins = simulate_ins(traj.state, times, M, o.platform, o.errors, o.seed)
+    errors = o.errors
+    if o.platform == "terrestrial":  # a hand-held camera with its GNSS/INS: a short lever arm
+        errors = replace(
+            errors,
+            boresight_deg=errors.boresight_deg or TERRESTRIAL_BORESIGHT_DEG,
+            lever_arm_m=errors.lever_arm_m or TERRESTRIAL_LEVER_ARM_M,
+        )
+    ins = simulate_ins(traj.state, times, M, o.platform, errors, o.seed)
     ext = o.frame_ext.lower().lstrip(".")
     if ext not in ("png", "tif"):
         raise SynthError(f"frame_ext must be 'png' or 'tif', got {o.frame_ext!r}")
@@ -277,9 +310,10 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
         position_error=ins.position_error,
         attitude_error=ins.attitude_error,
         anomalies=thermal.anomalies,
+        windows=thermal.windows,
         thermal=o.thermal,
         sensor=o.sensor,
-        errors=asdict(o.errors),
+        errors=asdict(errors),
     )
     return SynthResult(
         manifest=manifest,

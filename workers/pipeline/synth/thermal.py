@@ -3,7 +3,8 @@
 In: buildings (`citymodel.Building`, model CRS, metres), the polygon order of a `SceneMesh`
 (optional), one seed and a `ThermalOptions`. Out: temperatures in kelvin (float32) at any 3D
 point on a polygon, on the ground plane, or along a sky direction; the list of planted leak
-anomalies (`Anomaly`) with their true 3D centres and sizes.
+anomalies (`Anomaly`) with their true 3D centres, sizes and half-maximum outlines; the window
+rectangles of every wall (`windows`, `anomaly.Window`).
 
 The field of a wall is built in wall-local coordinates: `s` along the wall (`geometry.surface_axes`,
 metres from the polygon's centroid) and `h` = height above the building's lowest vertex. It sums:
@@ -22,13 +23,14 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import shapely
 
 from workers.pipeline.geometry.citymodel import Building, Polygon
 from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axes, to_plane_2d
-from workers.pipeline.synth.anomaly import Anomaly
+from workers.pipeline.synth.anomaly import Anomaly, Window, half_max_outline, wall_windows
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.shapes import footprint_corners, point_inside
 
@@ -275,6 +277,7 @@ class ThermalScene:
                     continue
                 center = self.p_origin[k] + st[0] * self.p_s[k] + st[1] * self.p_t[k]
                 self.p_leak_c[k], self.p_leak_sigma[k], self.p_leak_peak[k] = center, sigma, peak
+                outline, area = half_max_outline(polys[k], center, sigma)  # truth only, no draws
                 out.append(
                     Anomaly(
                         id=f"leak-{bid}-{j}",
@@ -284,6 +287,8 @@ class ThermalScene:
                         center=center,
                         sigma_m=sigma,
                         peak_k=peak,
+                        outline=outline,
+                        area_m2=area,
                     )
                 )
         self.anomalies = tuple(out)
@@ -342,6 +347,11 @@ class ThermalScene:
         self._g_wave = (2 * np.pi * self.g_wave).astype(np.float32)
         g_phase = self.g_phase + 2 * np.pi * (self.g_wave @ self.origin[:2])  # origin-independent
         self._g_phase = np.mod(g_phase, 2 * np.pi).astype(np.float32)
+
+    @cached_property
+    def windows(self) -> tuple[Window, ...]:
+        """Every window of the walls' window grids as a rectangle (truth; `anomaly.wall_windows`)."""
+        return wall_windows(self)
 
     # -- evaluation -----------------------------------------------------------------------------
     def polygon_index(self, polygon: int | str) -> int:

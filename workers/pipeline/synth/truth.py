@@ -1,7 +1,8 @@
 """Ground truth of a synthetic sequence (`citytherm-synth-truth/1`), documented in
 `docs/synth-truth.md`.
 
-In: what `synthesize` knows (true poses, mounting, delay, anomalies, options). Out: a
+In: what `synthesize` knows (true poses, mounting, delay, planted leaks with their half-maximum
+outlines, the walls' window rectangles, options). Out: a
 `SynthTruth` and its JSON form (`to_dict` / `from_dict`; files via `db.synth_files`). Poses are
 `R_wc` (camera to world, rows) and `C` (world, model CRS, metres).
 """
@@ -18,7 +19,7 @@ from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.geometry.manifest import Mounting
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.options import OptionsError, options_from_dict
-from workers.pipeline.synth.anomaly import Anomaly
+from workers.pipeline.synth.anomaly import Anomaly, Window
 from workers.pipeline.synth.common import SynthError
 from workers.pipeline.synth.render import SensorOptions
 from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
@@ -63,11 +64,13 @@ class SynthTruth:
         time_delay_s: true camera-to-INS delay δ.
         position_error: `(F, 3)` recorded minus true INS position at the stamps, metres.
         attitude_error: `(F, 3)` recorded minus true INS attitude at the stamps, degrees.
-        anomalies: planted leaks.
+        anomalies: planted leaks (centre, σ, ΔT, half-maximum outline and area).
         thermal: options of the temperature field.
         sensor: sensor effects.
         errors: the error-model options as given (`asdict` form).
         package: package folder the truth belongs to (relative to the truth file or absolute).
+        windows: the window rectangles of every wall of the scene (`ThermalScene.windows`;
+            empty in truth files written before windows were recorded).
     """
 
     seed: int
@@ -91,6 +94,7 @@ class SynthTruth:
     sensor: SensorOptions
     errors: dict[str, Any]
     package: str | None = None
+    windows: tuple[Window, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object of the truth file."""
@@ -121,6 +125,7 @@ class SynthTruth:
                 for i, p in enumerate(self.poses)
             ],
             "anomalies": [a.to_dict() for a in self.anomalies],
+            "windows": [w.to_dict() for w in self.windows],
             "thermal": asdict(self.thermal),
             "sensor": asdict(self.sensor),
             "errors": dict(self.errors),
@@ -155,6 +160,7 @@ class SynthTruth:
                 sensor=options_from_dict(SensorOptions, d.get("sensor"), strict=False),
                 errors=dict(d.get("errors") or {}),
                 package=d.get("package"),
+                windows=tuple(Window.from_dict(w) for w in d.get("windows") or []),
             )
         except (KeyError, TypeError, ValueError, OptionsError) as exc:
             raise SynthError(f"truth: missing or bad field ({exc})") from exc

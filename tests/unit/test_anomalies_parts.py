@@ -1,0 +1,148 @@
+"""The steps of the anomaly detector one by one: robust statistics, edge band, line profiles,
+window lattice, outlines, frame rules; and the module doctests."""
+
+from __future__ import annotations
+
+import doctest
+
+import numpy as np
+import pytest
+
+from tests.unit.test_anomalies import LEAKS, Leak, match_leaks, truth_xy, wall_grid, wall_texture
+from workers.pipeline.anomalies import analyse_surface, analysis, figures, lines, outline, typical, windows
+from workers.pipeline.anomalies.outline import region_ring, ring_area
+from workers.pipeline.anomalies.typical import edge_band, frames_per_texel, robust_stats
+
+
+@pytest.mark.parametrize("module", [typical, lines, outline, windows, figures, analysis])
+def test_doctests(module):
+    assert doctest.testmod(module).failed == 0
+
+
+def test_robust_stats_ignore_outliers_and_nan():
+    rng = np.random.default_rng(1)
+    v = rng.normal(280.0, 0.5, 10000)
+    v[:1500] += 20.0  # 15 % far outliers
+    v[1500:1600] = np.nan
+    med, spread = robust_stats(v)
+    assert abs(med - 280.0) < 0.15 and 0.45 < spread < 0.75
+    assert np.isnan(robust_stats(np.full(5, np.nan))).all()
+
+
+def test_edge_band_follows_the_unobserved_area_and_the_border():
+    obs = np.ones((10, 12), bool)
+    obs[:, 8:] = False
+    band = edge_band(obs, 2)
+    assert band[:, 6:8].all() and band[:2, :8].all() and band[:, :2].all()
+    assert not band[4:6, 3:5].any() and not band[:, 8:].any()
+
+
+def test_frames_per_texel_counts_kept_observations():
+    f = np.full((4, 2, 2), -1)
+    f[:3, 0, 0] = [3, 5, 9]
+    f[0, 1, 1] = 7
+    assert frames_per_texel(f).tolist() == [[3, 0], [0, 1]]
+
+
+def test_line_profiles_remove_a_pipe_but_not_a_leak():
+    H, W = 80, 60
+    y, x = np.mgrid[0:H, 0:W]
+    excess = np.zeros((H, W), np.float32)
+    excess[:, 20] += 2.0  # a pipe, one column wide
+    excess += (3.0 * np.exp(-((x - 40) ** 2 + (y - 40) ** 2) / (2 * 4.0**2))).astype(np.float32)
+    col, row, residual = lines.line_profiles(excess, np.ones((H, W), bool), 0.1, 2.0)
+    assert col[20] == pytest.approx(2.0, abs=0.05) and np.abs(np.delete(col, 20)).max() < 0.05
+    assert np.abs(row).max() < 0.05
+    assert np.abs(residual[:, 20]).max() < 0.05 and residual[40, 40] == pytest.approx(3.0, abs=0.05)
+
+
+def test_lattice_accepts_missing_windows_and_refuses_irregular_ones():
+    assert windows._on_lattice(np.array([10.0, 40, 100, 130]), 3)  # one window of five missing
+    assert not windows._on_lattice(np.array([0.0, 10, 23, 37]), 3)  # spacings 10, 13, 14
+
+
+def test_outline_of_a_texel_disk_is_tight_and_stays_inside_the_mask():
+    y, x = np.mgrid[0:40, 0:40]
+    disk = (x + 0.5 - 20) ** 2 + (y + 0.5 - 20) ** 2 <= 8**2
+    xy = region_ring(disk, np.ones_like(disk))
+    assert len(xy) <= 32 and abs(abs(ring_area(xy)) - disk.sum()) < 0.06 * disk.sum()
+    # a region touching the raster border is cut back to half a texel beyond the texel centres
+    edge = np.zeros((20, 20), bool)
+    edge[5:10, 0:4] = True
+    xy = region_ring(edge, np.ones_like(edge))
+    assert xy[:, 0].min() >= 0.5 - 1e-9 and xy[:, 0].max() <= 4.0 + 1e-9
+
+
+def test_a_leak_is_found_next_to_a_pipe_running_through_windows():
+    grid = wall_grid()
+    import tests.unit.test_anomalies as scene
+
+    old = scene.PIPE_S
+    scene.PIPE_S = 1.5 + 0.03  # through the first window column
+    try:
+        leak = Leak(1.9, 7.3, 0.35, 3.0)  # in the attic, next to the pipe
+        res = analyse_surface(grid, wall_texture(grid, seed=7, leaks=(leak,)))
+    finally:
+        scene.PIPE_S = old
+    assert all(m is not None for _, m in match_leaks(grid, res, (leak,)))
+    assert len(res.of_kind("leak")) == 1, [a.centre for a in res.of_kind("leak")]
+
+
+def test_one_kept_observation_per_texel_caps_the_frame_rule():
+    grid = wall_grid()
+    tex = wall_texture(grid, seed=2)
+    tex.obs_frame[1:] = -1  # FusedOptions.keep = 1: one observation per texel, from frame 0..2
+    tex.obs_frame[0] = np.arange(grid.shape[1])[None, :] % 3
+    single = type(tex)(**{**tex.__dict__, "obs_frame": tex.obs_frame[:1]})
+    res = analyse_surface(grid, single)
+    assert all(m is not None for _, m in match_leaks(grid, res))
+    for a in res.of_kind("leak"):
+        assert a.frames == 3
+
+
+def test_low_noise_and_high_noise_walls():
+    grid = wall_grid()
+    for noise in (0.02, 0.2):
+        res = analyse_surface(grid, wall_texture(grid, seed=3, noise=noise))
+        found = match_leaks(grid, res)
+        assert all(m is not None for _, m in found), noise
+        assert len(res.of_kind("leak")) == len(LEAKS), noise
+
+
+def test_labels_mark_the_leak_at_its_centre():
+    grid = wall_grid()
+    res = analyse_surface(grid, wall_texture(grid, seed=0))
+    for lk in LEAKS:
+        x, y = truth_xy(grid, lk.s, lk.h).astype(int)
+        assert res.labels[y, x] == 3
+
+
+def test_a_warm_rim_around_an_occluded_hole_is_not_a_leak():
+    """An occluder (a tree) hides a disk of the wall; the texels around it are warm (mixed with
+    the occluder): a compact warm ring at the edge of the observed region."""
+    grid = wall_grid()
+    tex = wall_texture(grid, seed=6, leaks=())
+    H, W = grid.shape
+    y, x = np.mgrid[0:H, 0:W]
+    d = np.hypot(x + 0.5 - 90, y + 0.5 - 20) * grid.size  # hole centre s = 9 m, h = 7 m
+    rim = 3.0 * np.clip(1 - (d - 0.6) / 0.4, 0, 1)  # +3 K at the hole, 0 at 0.4 m from it
+    tex.value[:] = np.where(d < 0.6, np.nan, tex.value + rim)
+    tex.obs_frame[:, d < 0.6] = -1
+    res = analyse_surface(grid, tex)
+    assert res.of_kind("leak") == (), [a.centre for a in res.of_kind("leak")]
+
+
+def test_a_short_warm_riser_is_a_bridge_not_a_leak():
+    """A 1.5 m pipe segment (one half of its columns only: no line profile removes it)."""
+    grid = wall_grid()
+    tex = wall_texture(grid, seed=8, leaks=(), pipe=False)
+    H, W = grid.shape
+    s = (np.arange(W) + 0.5) * grid.size
+    h = 9.0 - (np.arange(H) + 0.5) * grid.size
+    riser = 2.5 * np.exp(-0.5 * ((s[None, :] - 9.03) / 0.08) ** 2) * ((h[:, None] > 4.4) & (h[:, None] < 5.9))
+    tex.value[:] = tex.value + riser.astype(np.float32)
+    res = analyse_surface(grid, tex)
+    assert res.of_kind("leak") == (), [a.centre for a in res.of_kind("leak")]
+    assert any(
+        abs(grid.raster_xy(b.centre[None])[0, 0] * grid.size - 9.03) < 0.2 for b in res.of_kind("bridge")
+    )

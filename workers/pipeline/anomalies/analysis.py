@@ -1,0 +1,291 @@
+"""`analyse_surface`: typical value, windows, linear bridges and leak candidates of one surface.
+
+In: a `TexelGrid` and its fused `SurfaceTexture` (kelvin), `AnomalyOptions`. Out: a
+`SurfaceAnalysis`: the facade figures, the anomalies (`results.Anomaly`, 3D outlines in the
+model CRS) and a label raster.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from workers.pipeline.anomalies import figures
+from workers.pipeline.anomalies.leaks import LeakInputs, Region, find_leaks
+from workers.pipeline.anomalies.lines import line_profiles, runs
+from workers.pipeline.anomalies.options import AnomalyError, AnomalyOptions
+from workers.pipeline.anomalies.outline import bbox, box_ring, outline, world_ring
+from workers.pipeline.anomalies.typical import edge_band, frames_per_texel, robust_stats, smooth
+from workers.pipeline.anomalies.windows import Window, find_windows
+from workers.pipeline.results import Anomaly
+from workers.pipeline.texture.fused import SurfaceTexture
+from workers.pipeline.texture.texel import TexelGrid
+
+OUTSIDE, NORMAL, WINDOW, LEAK, BRIDGE = 0, 1, 2, 3, 4
+NAN = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceAnalysis:
+    """The thermal analysis of one surface.
+
+    Attributes:
+        polygon_id, building_id: the surface.
+        typical: robust typical value (median of the observed texels outside windows and
+            candidates; NaN: fewer than `min_observed_texels` observed or analysis disabled).
+        spread: 1.4826 · MAD of their residual (linear bridges removed); the leak threshold
+            uses the finer spread below `spread_scale_m` (`docs/anomalies.md`).
+        hot_share, window_share, heat_loss_index: `figures` (`docs/anomalies.md`).
+        anomalies: windows, leaks and bridges, ids `<polygon_id>-<kind>-<n>` (n from 0, in
+            reading order: top to bottom, left to right).
+        labels: `(H, W)` uint8: 0 not observed/outside the mask, 1 observed normal, 2 window,
+            3 leak, 4 bridge.
+    """
+
+    polygon_id: str
+    building_id: str
+    typical: float
+    spread: float
+    hot_share: float
+    window_share: float
+    heat_loss_index: float
+    anomalies: tuple[Anomaly, ...]
+    labels: np.ndarray
+
+    def of_kind(self, kind: str) -> tuple[Anomaly, ...]:
+        """The anomalies of one kind ("leak", "window", "bridge")."""
+        return tuple(a for a in self.anomalies if a.kind == kind)
+
+
+def _confidence(peak: float, thr: float, texels: int, frames: int, support: float) -> float:
+    """`min(1, 0.5·peak/thr) · (1 − e^(−texels/9)) · (1 − 0.5^frames) · support` (0-1)."""
+    c = min(1.0, 0.5 * peak / thr) * (1 - math.exp(-texels / 9.0)) * (1 - 0.5**frames) * support
+    return max(0.0, min(1.0, float(c)))
+
+
+def _line_bridges(col: np.ndarray, row: np.ndarray, usable: np.ndarray, thr: float) -> list[Region]:
+    """Bridges found by the row/column profiles: runs of columns (rows) whose profile ≥ `thr`;
+    region = their usable texels, outline box = their extent."""
+    out = []
+    for axis, prof in ((1, col), (0, row)):
+        for a, b in runs(prof >= thr):
+            band = np.zeros_like(usable)
+            if axis == 1:
+                band[:, a:b] = True
+            else:
+                band[a:b, :] = True
+            m = band & usable
+            if not m.any():
+                continue
+            ys, xs = np.nonzero(m)
+            box = np.zeros_like(usable)
+            box[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1] = True
+            c = np.array([0.5 * (xs.min() + xs.max() + 1), 0.5 * (ys.min() + ys.max() + 1)])
+            seg = prof[a:b]
+            out.append(Region(m, float(seg.max()), float(seg.mean()), c, "bridge", box))
+    return out
+
+
+def _empty(grid: TexelGrid, labels: np.ndarray) -> SurfaceAnalysis:
+    return SurfaceAnalysis(grid.polygon_id, grid.building_id, NAN, NAN, NAN, NAN, NAN, (), labels)
+
+
+def analyse_surface(
+    grid: TexelGrid, texture: SurfaceTexture, options: AnomalyOptions = AnomalyOptions()
+) -> SurfaceAnalysis:
+    """Figures, windows, bridges and leak candidates of one surface (package docstring)."""
+    o = options
+    if texture.value.shape != grid.shape:
+        raise AnomalyError(f"texture shape {texture.value.shape} does not match grid {grid.shape}")
+    size = grid.size
+    value = texture.value.astype(np.float32)
+    observed = grid.mask & np.isfinite(value)
+    labels = np.where(observed, NORMAL, OUTSIDE).astype(np.uint8)
+    if not o.enabled or observed.sum() < o.min_observed_texels:
+        return _empty(grid, np.zeros_like(labels) if not o.enabled else labels)
+    # 1. typical value, first pass over everything observed; windows; second pass without them
+    t0 = float(np.median(value[observed][::3]))  # a first level for the window segmentation
+    scan = find_windows(np.where(observed, value, np.nan), t0, size, o)
+    windows, window_mask, exclusion = scan.windows, scan.window_mask, scan.exclusion
+    keep = observed & ~exclusion
+    if keep.sum() < o.min_observed_texels:
+        keep = observed
+    t1 = float(np.median(value[keep]))
+    # 2. linear bridges along the texel axes (row/column profiles) leave the residual excess;
+    # typical and spread from the texels whose residual is calm (no window, no candidate)
+    col, row, residual = line_profiles(np.where(observed, value - t1, np.nan), keep, size, o.line_min_m)
+    m1, s1 = robust_stats(residual[keep][::3])  # only to tell calm texels
+    calm = keep & (np.abs(residual - m1) <= max(o.k_mad * s1, o.floor_k))
+    if calm.sum() < o.min_observed_texels:
+        calm = keep
+    typical = float(np.median(value[calm]))
+    shift, spread = robust_stats(residual[calm])
+    residual -= shift
+    excess = np.where(observed, value - typical, np.nan).astype(np.float32)
+
+    # the threshold rests on the spread at scales below `spread_scale_m` (noise and texture):
+    # gradients, seams and the leaks themselves do not raise it
+    fine = residual - smooth(residual, calm, o.spread_scale_m / size)
+    thr = max(o.k_mad * robust_stats(fine[calm])[1], o.floor_k)
+    # 3. leak candidates on the residual; over window panes against the pane's own level
+    panes = observed & np.isfinite(scan.pane_level) & ~keep
+    residual[panes] = value[panes] - scan.pane_level[panes]
+    usable = keep | panes
+    band = edge_band(observed, round(o.edge_band_m / size))
+    smoothed = np.nan_to_num(
+        smooth(residual, usable, o.smooth_m / size if o.smooth_m >= size / 3 else 0.0), nan=-np.inf
+    )
+    edge = edge_band(observed, 1)
+    on_outline = observed & edge_band(grid.mask, max(1, round(o.outline_band_m / size)))
+    inp = LeakInputs(residual, smoothed, usable & ~band, band, usable, observed & ~usable, edge, on_outline)
+    frames_n = frames_per_texel(texture.obs_frame)
+    min_frames = min(o.min_frames, max(1, texture.obs_frame.shape[0]))
+    o_eff = o if min_frames == o.min_frames else replace(o, min_frames=min_frames)
+
+    def n_frames(m: np.ndarray) -> int:
+        return _frames(texture, m)
+
+    regions = find_leaks(inp, frames_n, n_frames, thr, size, o_eff)
+    regions += [r for r in _line_bridges(col, row, keep, thr) if n_frames(r.mask) >= min_frames]
+    # 3. anomalies, labels, figures
+    found: list[tuple[str, Anomaly]] = []
+    for w in windows:
+        a = _window_anomaly(grid, texture, excess, observed, w)
+        if a is not None:
+            found.append(("window", a))
+    leak_mask = np.zeros_like(observed)
+    for r in regions:
+        a = _region_anomaly(grid, texture, r, frames_n, thr, min_frames, o.blur_per_px)
+        if a is None:
+            continue
+        found.append((r.kind, a))
+        if r.kind == "leak":
+            leak_mask |= r.mask
+    labels[regions_mask(regions, "bridge", observed)] = BRIDGE
+    labels[window_mask & observed] = WINDOW
+    labels[leak_mask] = LEAK
+    return SurfaceAnalysis(
+        polygon_id=grid.polygon_id,
+        building_id=grid.building_id,
+        typical=typical,
+        spread=spread,
+        hot_share=figures.hot_share(excess, observed, window_mask, o.hot_delta_k),
+        window_share=figures.window_share(observed, window_mask),
+        heat_loss_index=figures.heat_loss_index(residual, observed, leak_mask),
+        anomalies=_with_ids(grid, found),
+        labels=labels,
+    )
+
+
+def regions_mask(regions: list[Region], kind: str, observed: np.ndarray) -> np.ndarray:
+    """Union `(H, W)` of the masks of the regions of one kind, within `observed`."""
+    m = np.zeros_like(observed)
+    for r in regions:
+        if r.kind == kind:
+            m |= r.mask
+    return m & observed
+
+
+def _window_anomaly(
+    grid: TexelGrid, texture: SurfaceTexture, excess: np.ndarray, observed: np.ndarray, w: Window
+) -> Anomaly | None:
+    H, W = grid.shape
+    around = grid.mask[max(w.y0 - 1, 0) : w.y1 + 1, max(w.x0 - 1, 0) : w.x1 + 1]
+    if w.x0 > 0 and w.y0 > 0 and w.x1 < W and w.y1 < H and around.all():
+        ring, area = world_ring(grid, box_ring(w.x0, w.y0, w.x1, w.y1))
+    else:  # next to the polygon outline: traced and kept inside
+        box = np.zeros_like(observed)
+        box[w.box] = True
+        res = outline(grid, box)
+        if res is None:
+            return None
+        ring, area = res
+    obs = observed[w.box]
+    e = excess[w.box][obs]
+    if len(e) == 0:
+        return None
+    k = int(0.1 * (len(e) - 1))
+    peak = float(np.partition(e, k)[k] if w.sign < 0 else -np.partition(-e, k)[k])
+    centre = grid.points_at(np.array([[0.5 * (w.x0 + w.x1), 0.5 * (w.y0 + w.y1)]]))[0]
+    f = texture.obs_frame[(slice(None), *w.box)][:, obs]
+    res_m = texture.resolution[w.box][obs]
+    conf = w.fill * max(0.25, 1 - 0.5 ** (w.group - 1))
+    return Anomaly(
+        grid.building_id, grid.polygon_id, ring, centre, area, peak, float(e.mean()), "window",
+        frames=len(np.unique(f[f >= 0])), best_resolution_m=_min_finite(res_m), confidence=conf,
+    )  # fmt: skip
+
+
+def _region_anomaly(
+    grid: TexelGrid,
+    texture: SurfaceTexture,
+    r: Region,
+    frames_n: np.ndarray,
+    thr: float,
+    min_frames: int,
+    blur_per_px: float,
+) -> Anomaly | None:
+    res = outline(grid, r.shape)
+    if res is None:
+        return None
+    ring, area = res
+    frames = _frames(texture, r.mask)
+    support = float(np.mean(frames_n[r.mask] >= min_frames))
+    conf = _confidence(r.peak, thr, int(r.mask.sum()), frames, support)
+    centre = grid.points_at(r.centre_xy[None])[0]
+    best = _best_res(texture, r.mask)
+    k = 1.0
+    if r.kind == "leak" and blur_per_px > 0 and np.isfinite(best):
+        k = blur_gain(float(r.mask.sum()) * grid.size**2, blur_per_px * best)
+    return Anomaly(
+        grid.building_id, grid.polygon_id, ring, centre, area, r.peak * k, r.mean * k, r.kind,
+        frames=frames, best_resolution_m=best, confidence=conf,
+    )  # fmt: skip
+
+
+def blur_gain(area_m2: float, blur_m: float) -> float:
+    """Factor restoring the amplitude of a Gaussian blob seen through a Gaussian blur of σ
+    `blur_m`: `σ_m² / (σ_m² − blur²)`, with σ_m from the half-maximum area (`area_m2`), at most 2.
+
+    >>> round(blur_gain(math.pi * (1.1774 * 0.5) ** 2, 0.3), 2)
+    1.56
+    """
+    s2 = area_m2 / math.pi / (2 * math.log(2))
+    b2 = blur_m * blur_m
+    return 2.0 if s2 <= 2 * b2 else min(2.0, s2 / (s2 - b2))
+
+
+def _min_finite(r: np.ndarray) -> float:
+    r = r[np.isfinite(r)]
+    return float(r.min()) if len(r) else NAN
+
+
+def _best_res(texture: SurfaceTexture, m: np.ndarray) -> float:
+    b = bbox(m)
+    return _min_finite(texture.resolution[b][m[b]]) if b is not None else NAN
+
+
+def _frames(texture: SurfaceTexture, m: np.ndarray) -> int:
+    """Distinct frames among the kept observations of the texels of `m (H, W)`."""
+    b = bbox(m)
+    if b is None:
+        return 0
+    f = texture.obs_frame[:, b[0], b[1]][:, m[b]]
+    return len(np.unique(f[f >= 0]))
+
+
+def _with_ids(grid: TexelGrid, found: list[tuple[str, Anomaly]]) -> tuple[Anomaly, ...]:
+    """Ids `<polygon_id>-<kind>-<n>` numbered per kind in reading order of the centres (rows of
+    half a metre from the top, then left to right)."""
+    if not found:
+        return ()
+    xy = grid.raster_xy(np.array([a.centre for _, a in found])) * grid.size
+    out: list[Anomaly] = []
+    for kind in ("window", "leak", "bridge"):
+        idx = [i for i, (k, _) in enumerate(found) if k == kind]
+        idx.sort(key=lambda i: (int(xy[i, 1] // 0.5), float(xy[i, 0]), float(xy[i, 1])))
+        for n, i in enumerate(idx):
+            out.append(replace(found[i][1], kind=kind, id=f"{grid.polygon_id}-{kind}-{n}"))
+    return tuple(out)
