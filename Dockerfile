@@ -2,6 +2,14 @@
 # and one-shot commands (`citytherm db upgrade`, `citytherm import ...`); see docker-compose.yml.
 #   docker build -t citytherm .
 #   docker run --rm citytherm --help
+# The /viewer page's three.js modules (docs/viewer.md): installed from the npm registry by the lock
+# file of tools/viewer/ in a node stage, and copied into the package before it is installed; the
+# image serves them itself (no CDN, no node at run time).
+FROM node:20-bookworm-slim AS viewer
+WORKDIR /viewer
+COPY tools/viewer/package.json tools/viewer/package-lock.json tools/viewer/vendor.mjs ./
+RUN npm ci --omit=dev --no-audit --no-fund && node vendor.mjs /viewer/vendor
+
 FROM python:3.11-slim-bookworm
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -23,8 +31,10 @@ RUN python -c "import tomllib; d = tomllib.load(open('/tmp/citytherm-deps/pyproj
  && pip install -r /tmp/citytherm-deps/requirements.txt \
  && rm -rf /tmp/citytherm-deps
 
-# The project itself (not editable, no dev extra); the sources are not kept in the image.
+# The project itself with the viewer's modules (not editable, no dev extra); the sources are not kept
+# in the image.
 COPY . /src
+COPY --from=viewer /viewer/vendor /src/services/api/viewer/vendor
 RUN pip install /src && rm -rf /src
 
 # A non-root user; /data (CITYTHERM_STORAGE_DIR) belongs to it, and a new named volume mounted

@@ -5,8 +5,10 @@ PYTHON  ?= python3
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.citytherm-installed
 SYSSTAMP:= $(VENV)/.citytherm-system
+VALIDATOR := tools/gltf-validator/node_modules/.package-lock.json
+VIEWER  := services/api/viewer/vendor/three/build/three.module.js
 
-.PHONY: install system test lint unit integration demo bench clean
+.PHONY: install system test lint unit integration demo bench clean viewer
 
 $(SYSSTAMP): .ci/system-deps.sh
 	bash .ci/system-deps.sh
@@ -18,6 +20,14 @@ $(STAMP): pyproject.toml $(SYSSTAMP)
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $@
 
+$(VALIDATOR): tools/gltf-validator/package-lock.json $(SYSSTAMP)
+	cd tools/gltf-validator && npm ci --no-audit --no-fund
+
+$(VIEWER): tools/viewer/package-lock.json tools/viewer/vendor.mjs $(SYSSTAMP)
+	cd tools/viewer && npm ci --no-audit --no-fund && node vendor.mjs
+
+viewer: $(VIEWER)
+
 system: $(SYSSTAMP)
 
 install: $(STAMP)
@@ -25,15 +35,15 @@ install: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
-test: $(STAMP)
+test: $(STAMP) $(VALIDATOR) $(VIEWER)
 	bash .ci/services-up.sh
 	$(BIN)/ruff check .
 	$(BIN)/pytest -q
 
-unit: $(STAMP)
+unit: $(STAMP) $(VALIDATOR)
 	$(BIN)/pytest -q tests/unit
 
-integration: $(STAMP)
+integration: $(STAMP) $(VALIDATOR) $(VIEWER)
 	bash .ci/services-up.sh
 	$(BIN)/pytest -q tests/integration
 

@@ -5,9 +5,14 @@
 # - libusb-1.0-0, libgomp1: shared libraries open3d-cpu loads at import
 # - gdal-bin: ogrinfo reads the database as GIS clients do (tests/integration/test_db_srid.py)
 # - docker-compose: validates docker-compose.yml (tests/unit/test_compose.py; no Docker engine needed)
+# - chromium: headless browser of the /viewer test (tests/integration/test_viewer.py, via playwright-core)
+# - nodejs, npm: the Khronos glTF validator (tools/gltf-validator, tests of the 3D Tiles export)
 set -euo pipefail
 pkgs=(postgresql-15 postgresql-15-postgis-3 redis-server libusb-1.0-0 libgomp1 libgl1 libglib2.0-0 gdal-bin
-      docker-compose)
+      docker-compose chromium)
+# node + npm run the Khronos glTF validator (tests of the 3D Tiles export); a NodeSource nodejs
+# bundles npm and conflicts with Debian's npm package, so only when npm is missing
+command -v npm >/dev/null 2>&1 || pkgs+=(nodejs npm)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")

@@ -36,9 +36,18 @@ def psycopg_url(url: str) -> str:
 
 
 def make_engine(settings_or_url: Settings | str, *, echo: bool = False) -> Engine:
-    """Engine for `settings.database_url` (or a URL string); pool pre-ping on."""
-    url = settings_or_url if isinstance(settings_or_url, str) else settings_or_url.database_url
-    return create_engine(sqlalchemy_url(url), echo=echo, pool_pre_ping=True, future=True)
+    """Engine for `settings.database_url` (or a URL string); pool pre-ping on, the pool sized by
+    `database_pool_size` / `database_max_overflow` (a URL string: the settings' defaults)."""
+    if isinstance(settings_or_url, str):
+        url = settings_or_url
+        pool = Settings.model_fields["database_pool_size"].default
+        overflow = Settings.model_fields["database_max_overflow"].default
+    else:
+        url = settings_or_url.database_url
+        pool, overflow = settings_or_url.database_pool_size, settings_or_url.database_max_overflow
+    return create_engine(
+        sqlalchemy_url(url), echo=echo, pool_pre_ping=True, future=True, pool_size=pool, max_overflow=overflow
+    )
 
 
 def make_session_factory(engine_or_settings: Engine | Settings | str) -> sessionmaker[Session]:

@@ -23,6 +23,16 @@ class Settings(BaseSettings):
         "postgresql+psycopg://postgres@127.0.0.1:5432/citytherm",
         description="SQLAlchemy URL of the PostGIS city model database.",
     )
+    database_pool_size: int = Field(
+        20,
+        ge=1,
+        le=1000,
+        description="Database connections a process keeps open (the API serves this many requests at "
+        "once without opening new connections, each of which costs tens of ms to set up).",
+    )
+    database_max_overflow: int = Field(
+        10, ge=0, le=1000, description="Extra database connections a process may open under load."
+    )
     redis_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker and result backend.")
     storage_dir: Path = Field(Path("./citytherm-data"), description="Uploaded packages and job results.")
     max_package_bytes: int = Field(20 * 1024**3, description="Largest expanded size of a sequence archive.")

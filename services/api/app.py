@@ -2,8 +2,9 @@
 
 `create_app(settings)` builds the app: the settings (created once, here or by the caller), one
 database engine and session factory on `app.state`, the routes (OGC API - Processes for jobs;
-models and sequences), and RFC 7807 problem responses for every error. OpenAPI at
-`/openapi.json`, interactive documentation at `/docs`. Run it with `citytherm serve`.
+models and sequences; OGC API - Features for buildings, facades, anomalies and jobs), and RFC 7807
+problem responses for every error. OpenAPI at `/openapi.json`, interactive documentation at
+`/docs`. Run it with `citytherm serve`.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from fastapi import FastAPI
 
 from db.session import make_engine, make_session_factory
 from db.settings import Settings
-from services.api import routes_data, routes_processes
+from services.api import routes_data, routes_features, routes_processes, routes_tiles, routes_viewer
 from services.api.problems import Problem, install_problem_handlers
 from workers.celery_app import configure as configure_celery
 
@@ -49,6 +50,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_problem_handlers(app)
     app.include_router(routes_processes.router)
     app.include_router(routes_data.router)
+    app.include_router(routes_tiles.router)
+    app.include_router(routes_features.router)
+    app.include_router(routes_viewer.router)  # the web page /viewer/ (static files)
     _add_problem_schema(app)
     return app
 

@@ -11,6 +11,7 @@ from fastapi.responses import FileResponse
 
 from services.api import service_jobs
 from services.api.deps import ReadAccess, SessionDep, SettingsDep, SubmitAccess
+from services.api.features import FEATURES_CONFORMANCE
 from services.api.problems import problem_responses
 from services.api.schemas import (
     Conformance,
@@ -32,6 +33,7 @@ CONFORMANCE = [
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/oas30",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/job-list",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/dismiss",
+    *FEATURES_CONFORMANCE,
 ]
 JOB_STATES = ("accepted", "running", "successful", "failed", "dismissed")
 AUTH = problem_responses(401, 403)
@@ -50,8 +52,8 @@ def landing_page(request: Request) -> dict:
     return {
         "title": "citytherm",
         "description": "Thermal-infrared image sequences textured onto CityGML building models "
-        "(OGC API - Processes). Upload city models (/models) and sequences (/sequences), then "
-        "execute the texture process.",
+        "(OGC API - Processes; OGC API - Features at /collections). Upload city models (/models) and "
+        "sequences (/sequences), then execute the texture process.",
         "links": [
             {"href": f"{b}/", "rel": "self", "type": "application/json", "title": "this document"},
             {
@@ -84,7 +86,13 @@ def landing_page(request: Request) -> dict:
                 "type": "application/json",
                 "title": "jobs",
             },
-            {"href": f"{b}/models", "rel": "data", "type": "application/json", "title": "city models"},
+            {
+                "href": f"{b}/collections",
+                "rel": "data",
+                "type": "application/json",
+                "title": "feature collections (OGC API - Features)",
+            },
+            {"href": f"{b}/models", "rel": "related", "type": "application/json", "title": "city models"},
         ],
     }
 

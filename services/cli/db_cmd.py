@@ -166,17 +166,32 @@ def _bbox(value: str | None) -> tuple[float, float, float, float] | None:
 
 
 def export_cmd(
-    model: str = typer.Option(..., "--model", help="model name or id"),
+    model: str | None = typer.Option(None, "--model", help="model name or id"),
     out: Path = typer.Option(..., "-o", "--out", help="output folder (textured.gml, textures/)"),
     theme: str | None = typer.Option(None, "--theme", help="only this appearance theme"),
     job: str | None = typer.Option(None, "--job", help="only this job's appearances"),
     bbox: str | None = typer.Option(None, "--bbox", help="minx,miny,maxx,maxy in the model CRS"),
     database_url: str | None = DbUrl,
+    fmt: str = typer.Option("citygml", "--format", help="citygml, or 3dtiles (docs/3dtiles.md)"),
+    results: Path | None = typer.Argument(None, help="3dtiles: a results folder instead of --model"),
+    range_c: str | None = typer.Option(None, "--range-c", help="3dtiles: colour range LO,HI in °C"),
+    geoid_m: float | None = typer.Option(None, "--geoid-undulation", help="3dtiles: added to heights, m"),
+    max_buildings: int = typer.Option(50, "--max-buildings", min=1, help="3dtiles: buildings per tile"),
+    workers: int = typer.Option(1, "--workers", min=1, help="3dtiles: processes writing tiles"),
 ) -> None:
-    """Export a city model as CityGML 2.0 plus texture files (the results format)."""
+    """Export a city model as CityGML 2.0 plus texture files (the results format), or with
+    `--format 3dtiles` a results folder or a model's newest job as 3D Tiles 1.1."""
     from db.errors import CityDBError
     from db.export import export_citygml
 
+    if fmt == "3dtiles":
+        from services.cli.tiles3d_cmd import export_3dtiles_cmd
+
+        return export_3dtiles_cmd(results, out, model=model, job=job, theme=theme, range_c=range_c,
+                                  geoid_undulation_m=geoid_m, max_buildings=max_buildings,
+                                  workers=workers, database_url=database_url)  # fmt: skip
+    if fmt != "citygml" or model is None or results is not None:
+        raise typer.BadParameter("--format citygml exports --model M (a folder needs --format 3dtiles)")
     try:
         s = export_citygml(_url(database_url), out, model=model, theme=theme, job_id=job, bbox=_bbox(bbox))
     except CityDBError as exc:

@@ -217,7 +217,9 @@ def test_dockerfile() -> None:
     by = {}
     for word, args in ins:
         by.setdefault(word, []).append(args)
-    assert by["FROM"] == ["python:3.11-slim-bookworm"]
+    assert by["FROM"][-1] == "python:3.11-slim-bookworm"  # the image; before it the viewer's node stage
+    assert by["FROM"][:-1] == ["node:20-bookworm-slim AS viewer"]
+    assert "--from=viewer /viewer/vendor /src/services/api/viewer/vendor" in by["COPY"]
     entrypoint = _exec_form(by["ENTRYPOINT"][-1])
     cmd = _exec_form(by["CMD"][-1]) if "CMD" in by else []
     assert entrypoint[0] == "citytherm" or (not entrypoint and cmd[0] == "citytherm")
@@ -230,6 +232,7 @@ def test_dockerfile() -> None:
     for pkg in ("libusb-1.0-0", "libgomp1", "libgl1", "libglib2.0-0"):
         assert pkg in runs, f"{pkg} is not installed"
     assert "pip install" in runs and "[dev]" not in runs
+    assert "npm ci --omit=dev" in runs and "node vendor.mjs" in runs  # the viewer's three.js modules
 
 
 def test_dockerignore_keeps_the_build_inputs() -> None:

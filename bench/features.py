@@ -1,0 +1,273 @@
+"""OGC API - Features benchmark: latency of 100-feature pages of `facades` with 20 concurrent
+clients, at the first page and deep in the collection (after 9,900 features, through the keyset
+cursor of the `next` links), against `citytherm serve` over HTTP.
+
+Data: the replicated NRW model (`bench/citygml_io.make_replicated_model`: 87 shifted copies of the
+NRW LoD2 tile, ~9,500 buildings + parts, ~126,000 surfaces; `--copies 8` for a quick run) imported
+into a fresh bench database, with one job's thermal statistics for every surface written in SQL
+(as `tests/integration/test_api_features.py` does): one facade feature per surface.
+
+Figures (JSON): per phase, requests, p50 / p95 / p99 / max latency (ms) and requests/s (also
+with one client: a request's cost without queueing); the single cold first-page request (its
+numberMatched counted; later first pages reuse the count for `COUNT_TTL_S` seconds, deep pages
+carry it in the cursor); the load average of the shared machine.
+Bar (issue 17): p95 < 100 ms at the first page and deep.
+
+Usage: `python bench/features.py [--copies 87] [--clients 20] [--requests 40] [--workers 2]
+[--pool-size N] [--db NAME] [--keep]` (`--db`: the bench database, dropped and created afresh;
+default `citytherm_bench_features`; `--pool-size`: the same app with a larger connection pool).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+NRW = REPO / "tests" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
+PG = os.environ.get("CITYTHERM_BENCH_PG", "postgresql://postgres@127.0.0.1:5432")
+EXE = str(Path(sys.executable).with_name("citytherm"))
+
+
+def load(url: str, path: Path) -> dict:
+    """Import `path` and give every surface one job's thermal statistics; figures."""
+    from sqlalchemy import text
+    from sqlalchemy.orm import Session
+
+    from db.importer import import_citygml
+    from db.session import make_engine
+    from db.store import create_job
+
+    engine = make_engine(url)
+    t0 = time.perf_counter()
+    model = import_citygml(engine, path, name="bench").model_id
+    t_import = time.perf_counter() - t0
+    with Session(engine) as s:
+        job = create_job(s, model_id=model, theme="tir-bench")
+        s.commit()
+    with engine.begin() as c:
+        c.execute(
+            text(
+                "INSERT INTO appearance (city_model_id, building_id, job_id, theme, ordinal) "
+                "SELECT b.city_model_id, b.id, :j, 'tir-bench', 0 FROM building b "
+                "WHERE b.city_model_id = :m AND b.parent_id IS NULL"
+            ),
+            {"j": job, "m": model},
+        )
+        c.execute(
+            text(
+                "INSERT INTO surface_thermal (appearance_id, surface_id, texels_total, texels_observed, "
+                "observed_share, frames_used, resolution_m, mean_k, min_k, max_k, p95_k, temperature, "
+                "unit) SELECT a.id, s.id, 100, 80, 0.8, ARRAY[1, 2], 0.05, 270 + (s.id % 20), 260, 300, "
+                "290, '{}'::jsonb, 'kelvin' FROM appearance a JOIN building p ON p.root_id = a.building_id "
+                "JOIN surface s ON s.building_id = p.id WHERE a.job_id = :j"
+            ),
+            {"j": job},
+        )
+    with engine.connect() as c:
+        c.execution_options(isolation_level="AUTOCOMMIT").execute(text("ANALYZE"))
+        facades = c.execute(text("SELECT count(*) FROM surface_thermal")).scalar_one()
+    engine.dispose()
+    return {"import_s": round(t_import, 1), "facades": int(facades)}
+
+
+def make_app() -> object:
+    """The API app as `citytherm serve` builds it, but with a connection pool of
+    `CITYTHERM_BENCH_POOL_SIZE` connections (`--pool-size`: what a larger pool than the engine's
+    default of 5 + 10 overflow would give; uvicorn factory)."""
+    from sqlalchemy import create_engine
+    from sqlalchemy.orm import sessionmaker
+
+    from db.session import sqlalchemy_url
+    from db.settings import Settings
+    from services.api.app import create_app
+
+    settings = Settings()
+    app = create_app(settings)
+    size = int(os.environ["CITYTHERM_BENCH_POOL_SIZE"])
+    engine = create_engine(
+        sqlalchemy_url(settings.database_url), pool_pre_ping=True, pool_size=size, max_overflow=10
+    )
+    app.state.engine = engine
+    app.state.session_factory = sessionmaker(bind=engine, expire_on_commit=False)
+    return app
+
+
+def start_server(
+    url: str, workers: int, log: Path, pool_size: int | None
+) -> tuple[subprocess.Popen[bytes], str, str]:
+    """`citytherm serve` (or the same app with a pool of `pool_size`) on a free port with a new
+    read key: (process, base URL, key)."""
+    import httpx
+
+    env = {**os.environ, "CITYTHERM_DATABASE_URL": url, "CITYTHERM_STORAGE_DIR": str(log.parent)}
+    key = subprocess.run(
+        [EXE, "apikey", "create", "--name", "bench", "--scope", "read"],
+        env=env, capture_output=True, text=True, check=True,
+    ).stdout.strip().splitlines()[-1]  # fmt: skip
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cmd = [EXE, "serve", "--port", str(port), "--workers", str(workers), "--log-level", "warning"]
+    if pool_size:
+        env["CITYTHERM_BENCH_POOL_SIZE"] = str(pool_size)
+        env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(REPO / "bench"), env.get("PYTHONPATH", "")])
+        run = (
+            "import uvicorn; uvicorn.run('features:make_app', factory=True, host='127.0.0.1', "
+            f"port={port}, workers={workers}, log_level='warning')"
+        )
+        cmd = [sys.executable, "-c", run]
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    for _ in range(600):
+        try:
+            if httpx.get(f"{base}/conformance", timeout=2).status_code == 200:
+                return proc, base, key
+        except httpx.TransportError:
+            time.sleep(0.1)
+    proc.terminate()
+    raise RuntimeError(f"the API server did not start: {log.read_text()}")
+
+
+def _auth(key: str | None) -> dict[str, str]:
+    return {"Authorization": f"Bearer {key}"} if key else {}
+
+
+def hammer(base: str, key: str | None, url: str, clients: int, requests: int) -> dict:
+    """`clients` threads, each with its own connection, GET `url` `requests` times; figures."""
+    import httpx
+
+    lat: list[float] = []
+    errors: list[str] = []
+    lock = threading.Lock()
+    barrier = threading.Barrier(clients)
+
+    def client() -> None:
+        mine: list[float] = []
+        with httpx.Client(base_url=base, headers=_auth(key), timeout=60) as c:
+            c.get("/conformance")  # connect before the clock starts
+            barrier.wait()
+            for _ in range(requests):
+                t0 = time.perf_counter()
+                r = c.get(url)
+                body = r.content
+                mine.append(time.perf_counter() - t0)
+                if r.status_code != 200 or b'"numberReturned":100' not in body:
+                    errors.append(f"{r.status_code} {body[:200]!r}")
+        with lock:
+            lat.extend(mine)
+
+    t0 = time.perf_counter()
+    threads = [threading.Thread(target=client) for _ in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.perf_counter() - t0
+    lat.sort()
+
+    def q(p: float) -> float:
+        return round(1000 * lat[min(len(lat) - 1, int(p * len(lat)))], 1)
+
+    return {
+        "requests": len(lat),
+        "errors": len(errors),
+        "p50_ms": q(0.50),
+        "p95_ms": q(0.95),
+        "p99_ms": q(0.99),
+        "max_ms": round(1000 * lat[-1], 1),
+        "requests_per_s": round(len(lat) / wall, 1),
+    }
+
+
+def deep_url(base: str, key: str | None, path: str, skip: int, limit: int) -> str:
+    """The `next` link reached after `skip` features, pages of `limit`, followed like a client."""
+    import httpx
+
+    with httpx.Client(base_url=base, headers=_auth(key), timeout=60) as c:
+        url = f"{path}?limit={limit}"
+        for _ in range(skip // limit):
+            doc = c.get(url).json()
+            url = next(link["href"] for link in doc["links"] if link["rel"] == "next")
+    return url
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--copies", type=int, default=87, help="copies of the NRW tile (8: a quick run)")
+    ap.add_argument("--clients", type=int, default=20)
+    ap.add_argument("--requests", type=int, default=40, help="requests per client and phase")
+    ap.add_argument("--workers", type=int, default=2, help="uvicorn worker processes")
+    ap.add_argument("--pool-size", type=int, help="serve with a database pool of this size (what-if)")
+    ap.add_argument("--deep", type=int, default=9_900, help="features before the deep page")
+    ap.add_argument("--db", default="citytherm_bench_features", help="bench database (dropped, created)")
+    ap.add_argument("--keep", action="store_true", help="keep the bench database")
+    args = ap.parse_args()
+
+    from citygml_io import make_replicated_model
+    from db_io import _drop_database, _fresh_database
+
+    tmp = tempfile.TemporaryDirectory(prefix="citytherm-featbench-")
+    big = make_replicated_model(NRW, Path(tmp.name) / "nrw-replicated.gml", args.copies)
+    url = _fresh_database(PG, args.db)
+    proc = None
+    try:
+        data = load(url, big)
+        proc, base, key = start_server(url, args.workers, Path(tmp.name) / "serve.log", args.pool_size)
+        import httpx
+
+        path = "/collections/facades/items"
+        headers = {"Authorization": f"Bearer {key}"}
+        t0 = time.perf_counter()
+        cold = httpx.get(f"{base}{path}?limit=100", headers=headers, timeout=60)
+        cold_ms = round(1000 * (time.perf_counter() - t0), 1)
+        matched = cold.json().get("numberMatched")
+        deep = deep_url(base, key, path, args.deep, 100)
+        hammer(base, key, f"{path}?limit=100", args.clients, 5)  # warm-up: connections, plans
+        first = hammer(base, key, f"{path}?limit=100", args.clients, args.requests)
+        deep_fig = hammer(base, key, deep, args.clients, args.requests)
+        alone = {  # one client: the cost of a request without queueing
+            "first_page": hammer(base, key, f"{path}?limit=100", 1, args.requests),
+            f"after_{args.deep}": hammer(base, key, deep, 1, args.requests),
+        }
+    finally:
+        if proc is not None:
+            proc.terminate()
+            proc.wait(timeout=30)
+        if not args.keep:
+            _drop_database(PG, args.db)
+    out = {
+        "data": {"copies": args.copies, **data, "numberMatched": matched},
+        "server": {
+            "uvicorn_workers": args.workers,
+            "db_pool_size": args.pool_size or "default (5 + 10 overflow)",
+            "clients": args.clients,
+            "page": 100,
+        },
+        "cold_first_page_ms": cold_ms,
+        "first_page": first,
+        f"after_{args.deep}": deep_fig,
+        "one_client": alone,
+        "load_avg_1min_after": round(os.getloadavg()[0], 2),
+        "cpus": os.cpu_count(),
+        "bars": {
+            "first_page_p95_ms<100": first["p95_ms"] < 100,
+            "deep_page_p95_ms<100": deep_fig["p95_ms"] < 100,
+        },
+    }
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,264 @@
+"""OGC API - Features (Part 1 Core + GeoJSON, Part 2 CRS by reference) over the city model
+database: the service layer of `routes_features` (`docs/features.md`).
+
+In: an engine, the collection id, the raw query parameters, the API's base URL. Out: JSON-ready
+dicts (collections) and the bytes of GeoJSON documents (items), with their `Content-Crs`.
+
+- Features are built as JSON text by PostgreSQL (`json_build_object`, `ST_AsGeoJSON`), so that a
+  page costs one query and no JSON parsing in Python; pages of more than `STREAM_ABOVE` features
+  are streamed from a server-side cursor.
+- Paging is keyset paging on the feature id (`WHERE id > last ORDER BY id LIMIT n + 1`), never
+  OFFSET: a page deep in a collection costs what the first one does. The `next` / `prev` links
+  carry an opaque cursor (`features_params.Cursor`).
+- numberMatched is an exact count (capped at `features_sql.COUNT_CAP`, above which it is left
+  out), made once for the first page of a query and carried in its cursors, and kept
+  `features_sql.COUNT_TTL_S` seconds per process for the same query: deep pages never count again,
+  and a first page may show a count up to that old.
+- Geometries are stored in the database SRID (`db.srid`); CRS84 / CRS84h output is
+  `ST_Transform(geometry, 4979)`: longitude, latitude, and the model's heights unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Mapping
+from typing import Any
+from urllib.parse import urlencode
+
+from sqlalchemy import Connection, Engine, text
+
+from db.errors import NotFoundError
+from services.api import features_sql
+from services.api.features_collections import COLLECTIONS, Collection
+from services.api.features_params import (
+    CRS84,
+    CRS84H,
+    Crs,
+    Cursor,
+    ItemsQuery,
+    crs_uri,
+    encode_cursor,
+    parse_crs,
+    parse_item_id,
+    parse_items_query,
+)
+
+__all__ = [
+    "FEATURES_CONFORMANCE",
+    "GEOJSON",
+    "collection_view",
+    "collections_view",
+    "item_document",
+    "items_document",
+]
+
+FEATURES_CONFORMANCE = [
+    "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/core",
+    "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/geojson",
+    "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/oas30",
+    "http://www.opengis.net/spec/ogcapi-features-2/1.0/conf/crs",
+]
+GEOJSON = "application/geo+json"
+STREAM_ABOVE = 1000
+
+
+class NoSuchCollectionError(NotFoundError):
+    """No collection of that id."""
+
+
+def _collection(collection_id: str) -> Collection:
+    c = COLLECTIONS.get(collection_id)
+    if c is None:
+        raise NoSuchCollectionError(
+            f"no collection {collection_id[:200]!r}; collections: {', '.join(COLLECTIONS)}"
+        )
+    return c
+
+
+def _collection_doc(c: Collection, base: str, srid: int, extent: dict[str, list[float]] | None) -> dict:
+    href = f"{base}/collections/{c.id}"
+    doc: dict[str, Any] = {
+        "id": c.id,
+        "title": c.title,
+        "description": c.description,
+        "itemType": "feature",
+        "crs": [CRS84, CRS84H, crs_uri(srid)],
+        "storageCrs": crs_uri(srid),
+        "links": [
+            {"href": href, "rel": "self", "type": "application/json", "title": c.title},
+            {"href": f"{href}/items", "rel": "items", "type": GEOJSON, "title": f"{c.title} (GeoJSON)"},
+        ],
+    }
+    if extent:
+        doc["extent"] = {
+            "spatial": {
+                "bbox": [[round(v, 9) for v in extent["crs84"]]],
+                "crs": CRS84,
+                "storageCrsBbox": [[round(v, 6) for v in extent["storage"]]],
+            }
+        }
+    return doc
+
+
+def collections_view(engine: Engine, *, base: str) -> dict[str, Any]:
+    """`GET /collections`: every collection with its extent, CRS list and links."""
+    with engine.connect() as conn:
+        srid = features_sql.database_srid_cached(engine)
+        extent = features_sql.data_extent(conn, srid)
+    return {
+        "collections": [_collection_doc(c, base, srid, extent) for c in COLLECTIONS.values()],
+        "links": [{"href": f"{base}/collections", "rel": "self", "type": "application/json"}],
+        "crs": [CRS84, CRS84H, crs_uri(srid)],
+    }
+
+
+def collection_view(engine: Engine, *, collection_id: str, base: str) -> dict[str, Any]:
+    """`GET /collections/{id}` (`NotFoundError` for an unknown id)."""
+    c = _collection(collection_id)
+    with engine.connect() as conn:
+        srid = features_sql.database_srid_cached(engine)
+        return _collection_doc(c, base, srid, features_sql.data_extent(conn, srid))
+
+
+# -- items -------------------------------------------------------------------------------------
+def _link(href: str, rel: str, title: str) -> dict[str, str]:
+    return {"href": href, "rel": rel, "type": GEOJSON, "title": title}
+
+
+def _page_url(base: str, path: str, raw: Mapping[str, list[str]], limit: int, cursor: Cursor) -> str:
+    params = [(k, v[0]) for k, v in raw.items() if k not in ("cursor", "limit")]
+    params += [("limit", str(limit)), ("cursor", encode_cursor(cursor))]
+    return f"{base}{path}?{urlencode(params)}"
+
+
+def _legacy_crs(crs: Crs) -> str:
+    """The GeoJSON 2008 `crs` member for output in the database CRS (read by GDAL's GeoJSON
+    driver and older clients; RFC 7946 readers ignore it as a foreign member)."""
+    if crs.geographic:
+        return ""
+    epsg = crs.uri.rsplit("/", 1)[1]
+    return f',"crs":{{"type":"name","properties":{{"name":"urn:ogc:def:crs:EPSG::{epsg}"}}}}'
+
+
+def items_document(
+    engine: Engine,
+    *,
+    collection_id: str,
+    params: Mapping[str, list[str]],
+    base: str,
+    path: str,
+    self_url: str,
+) -> tuple[Iterator[bytes], Crs, bool]:
+    """`GET /collections/{id}/items`: (the FeatureCollection as chunks of bytes, the output CRS,
+    whether to stream it). Raises `NotFoundError` (collection) and `FeatureParamError` (400)."""
+    c = _collection(collection_id)
+    srid = features_sql.database_srid_cached(engine)
+    q = parse_items_query(params, c, srid)
+    cur = q.cursor
+    forward = cur is None or cur.forward
+    stream = q.limit > STREAM_ABOVE and forward
+    conn = engine.connect()
+    try:
+        if not stream:  # no BEGIN / ROLLBACK round trips (a server-side cursor needs a transaction)
+            conn.execution_options(isolation_level="AUTOCOMMIT")
+        props = features_sql.properties(conn, c)
+        from_sql, where, binds = features_sql.where_clause(c, q, conn, srid)
+        matched = cur.matched if cur is not None and cur.query == q.fingerprint else None
+        if matched is None:
+            matched = features_sql.count_matched(conn, c, q, from_sql, where, binds)
+        if cur is not None:
+            where = f"{where} AND {c.key} {'>' if forward else '<'} :cursor_key"
+            binds["cursor_key"] = cur.key
+        sql = (
+            f"SELECT {features_sql.feature_select(c, props, q.crs)} FROM {from_sql} WHERE {where} "
+            f"ORDER BY {c.key} {'ASC' if forward else 'DESC'} LIMIT {q.limit + 1}"
+        )
+        options = {"yield_per": 500} if stream else {}
+        result = conn.execute(text(sql), binds, execution_options=options)
+    except BaseException:
+        conn.close()
+        raise
+    return _chunks(conn, result, c, q, matched, base, path, params, self_url), q.crs, stream
+
+
+def _chunks(
+    conn: Connection,
+    result: Any,
+    c: Collection,
+    q: ItemsQuery,
+    matched: int | None,
+    base: str,
+    path: str,
+    params: Mapping[str, list[str]],
+    self_url: str,
+) -> Iterator[bytes]:
+    """The FeatureCollection of `result`'s rows (the first `q.limit`), then its links; closes
+    `conn` at the end."""
+    try:
+        forward = q.cursor is None or q.cursor.forward
+        rows: Any = result if forward else list(result)[::-1]
+        if not forward and len(rows) > q.limit:  # one row more than a page: there are earlier ones
+            rows, more_before = rows[1:], True
+        else:
+            more_before = q.cursor is not None and forward
+        yield b'{"type":"FeatureCollection","features":['
+        n, first, last, more_after = 0, None, None, not forward
+        buf: list[str] = []
+        for k, f in rows:
+            if n == q.limit:
+                more_after = True
+                break
+            if first is None:
+                first = k
+            last = k
+            buf.append(f)
+            n += 1
+            if len(buf) >= 500:
+                yield ((",", "")[n == len(buf)] + ",".join(buf)).encode()
+                buf = []
+        if buf:
+            yield ((",", "")[n == len(buf)] + ",".join(buf)).encode()
+        links = [_link(self_url, "self", "this page")]
+        key = str if c.key_kind == "uuid" else int
+        if more_after and last is not None:
+            nxt = Cursor(key(last), True, matched, q.fingerprint)
+            links.append(_link(_page_url(base, path, params, q.limit, nxt), "next", "next page"))
+        if more_before and first is not None:
+            prv = Cursor(key(first), False, matched, q.fingerprint)
+            links.append(_link(_page_url(base, path, params, q.limit, prv), "prev", "previous page"))
+        links.append({"href": f"{base}/collections/{c.id}", "rel": "collection", "type": "application/json"})
+        tail: dict[str, Any] = {"numberReturned": n}
+        if matched is not None:
+            tail["numberMatched"] = matched
+        tail["links"] = links
+        yield ("]," + json.dumps(tail, separators=(",", ":"))[1:-1] + _legacy_crs(q.crs) + "}").encode()
+    finally:
+        conn.close()
+
+
+def item_document(
+    engine: Engine, *, collection_id: str, feature_id: str, crs: str | None, base: str
+) -> tuple[bytes, Crs]:
+    """`GET /collections/{id}/items/{featureId}`: (the Feature as bytes, the output CRS);
+    `NotFoundError` for an unknown collection or feature."""
+    c = _collection(collection_id)
+    key = parse_item_id(c, feature_id)
+    with engine.connect() as conn:
+        srid = features_sql.database_srid_cached(engine)
+        out = parse_crs(crs, srid)
+        from_sql = c.from_sql.format(**{s: "" for s in c.slots})
+        sql = (
+            f"SELECT {features_sql.feature_select(c, features_sql.properties(conn, c), out)} FROM {from_sql} "
+        )
+        row = conn.execute(
+            text(f"{sql} WHERE ({c.where}) AND {c.key} = :key"), {"key": key, "srid": srid}
+        ).first()
+    if row is None:
+        raise NotFoundError(f"collection {c.id!r} has no feature {feature_id[:200]!r}")
+    href = f"{base}/collections/{c.id}/items/{row[0]}"
+    links = [
+        {"href": href, "rel": "self", "type": GEOJSON},
+        {"href": f"{base}/collections/{c.id}", "rel": "collection", "type": "application/json"},
+    ]
+    body = row[1][:-1] + ',"links":' + json.dumps(links, separators=(",", ":")) + _legacy_crs(out) + "}"
+    return body.encode(), out

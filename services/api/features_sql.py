@@ -1,0 +1,196 @@
+"""SQL of the OGC API - Features service (`features.py`): the SELECT of a page (features built as
+JSON text by PostgreSQL), the filter and bbox conditions, numberMatched, the data's extent, and a
+small per-process cache (database SRID, optional columns, extents, counts).
+
+In: a `Collection`, a validated `ItemsQuery`, a connection. Out: SQL text and bind parameters.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from typing import Any
+
+from sqlalchemy import Connection, Engine, text
+
+from db.srid import database_srid
+from services.api.features_collections import Collection
+from services.api.features_params import Crs, ItemsQuery
+
+__all__ = [
+    "COUNT_CAP",
+    "COUNT_TTL_S",
+    "count_matched",
+    "data_extent",
+    "database_srid_cached",
+    "feature_select",
+    "properties",
+    "where_clause",
+]
+
+COUNT_CAP = 1_000_000
+COUNT_TTL_S = 30.0
+_TTL_S = 30.0
+
+
+class _Cache:
+    """A small per-process cache with expiry (database SRID, optional columns, extents, counts)."""
+
+    def __init__(self) -> None:
+        self._data: dict[tuple[Any, ...], tuple[float, Any]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple[Any, ...], ttl: float) -> Any | None:
+        """The value of `key` if stored less than `ttl` seconds ago, else None."""
+        with self._lock:
+            hit = self._data.get(key)
+        return hit[1] if hit is not None and time.monotonic() - hit[0] < ttl else None
+
+    def put(self, key: tuple[Any, ...], value: Any) -> Any:
+        """Store `value` under `key`; returns it."""
+        with self._lock:
+            if len(self._data) > 10_000:
+                self._data.clear()
+            self._data[key] = (time.monotonic(), value)
+        return value
+
+
+_cache = _Cache()
+
+
+def _srid(conn: Connection) -> int:
+    """The database SRID (`db.srid.database_srid`), cached an hour per database URL."""
+    key = ("srid", str(conn.engine.url))
+    return _cache.get(key, 3600.0) or _cache.put(key, database_srid(conn))
+
+
+def database_srid_cached(engine: Engine) -> int:
+    """The database SRID (cached; a short connection the first time)."""
+    hit = _cache.get(("srid", str(engine.url)), 3600.0)
+    if hit is not None:
+        return hit
+    with engine.connect() as conn:
+        return _srid(conn)
+
+
+def properties(conn: Connection, c: Collection) -> tuple[tuple[str, str], ...]:
+    """The collection's properties, with its optional ones whose column exists."""
+    if not c.optional:
+        return c.properties
+    key = ("columns", str(conn.engine.url), c.id)
+    have = _cache.get(key, _TTL_S)
+    if have is None:
+        rows = conn.execute(
+            text(
+                "SELECT table_name, column_name FROM information_schema.columns "
+                "WHERE table_schema = current_schema() AND table_name = ANY(:t)"
+            ),
+            {"t": sorted({o[2] for o in c.optional})},
+        ).all()
+        have = _cache.put(key, frozenset((r[0], r[1]) for r in rows))
+    return c.properties + tuple((n, e) for n, e, t, col in c.optional if (t, col) in have)
+
+
+def data_extent(conn: Connection, srid: int) -> dict[str, list[float]] | None:
+    """Extent of the complete city models: `storage` (x0, y0, z0, x1, y1, z1, database SRID) and
+    `crs84` (lon0, lat0, lon1, lat1); None without a model."""
+    key = ("extent", str(conn.engine.url))
+    hit = _cache.get(key, _TTL_S)
+    if hit is not None:
+        return hit or None
+    row = conn.execute(
+        text(
+            "WITH x AS (SELECT ST_3DExtent(envelope) AS e FROM city_model WHERE state = 'complete'), "
+            "g AS (SELECT e, ST_Transform(ST_Segmentize(ST_SetSRID(e::box2d::geometry, CAST(:s AS int)), "
+            "GREATEST(ST_XMax(e) - ST_XMin(e), ST_YMax(e) - ST_YMin(e), 1) / 16), 4326) AS w "
+            "FROM x WHERE e IS NOT NULL) "
+            "SELECT ST_XMin(e), ST_YMin(e), ST_ZMin(e), ST_XMax(e), ST_YMax(e), ST_ZMax(e), "
+            "ST_XMin(w), ST_YMin(w), ST_XMax(w), ST_YMax(w) FROM g"
+        ),
+        {"s": srid},
+    ).first()
+    if row is None:
+        _cache.put(key, {})
+        return None
+    vals = [float(v) for v in row]
+    return _cache.put(key, {"storage": vals[:6], "crs84": vals[6:]})
+
+
+def feature_select(c: Collection, props: tuple[tuple[str, str], ...], crs: Crs) -> str:
+    """The SELECT list: the key and the feature as JSON text."""
+    g = (
+        f"ST_AsGeoJSON(ST_Transform({c.geometry}, 4979), 9)"
+        if crs.geographic
+        else f"ST_AsGeoJSON({c.geometry}, 6)"
+    )
+    key_json = c.key if c.key_kind == "int" else f"{c.key}::text"
+    body = ", ".join(f"'{name}', {expr}" for name, expr in props)
+    return (
+        f"{c.key} AS k, json_build_object('type', 'Feature', 'id', {key_json}, 'geometry', ({g})::json, "
+        f"'properties', json_build_object({body}))::text AS f"
+    )
+
+
+def where_clause(
+    c: Collection, q: ItemsQuery, conn: Connection, srid: int
+) -> tuple[str, str, dict[str, Any]]:
+    """(FROM clause with its slots filled, WHERE condition, bind parameters) of the query's
+    filters and bbox (not the cursor)."""
+    params: dict[str, Any] = {"srid": srid}
+    conds = [c.where]
+    slots: dict[str, list[str]] = {s: [] for s in c.slots}
+    for name, value in q.filters.items():
+        f = c.filter(name)
+        assert f is not None
+        params[name] = value
+        (slots[f.slot] if f.slot != "where" else conds).append(f.sql)
+        if name in c.required:
+            conds.append(c.required[name])
+    if q.bbox is not None:
+        conds.append(_bbox_condition(c, q, conn, srid, params))
+    from_sql = c.from_sql.format(**{s: "".join(v) for s, v in slots.items()})
+    return from_sql, " AND ".join(f"({x})" for x in conds), params
+
+
+def _bbox_condition(c: Collection, q: ItemsQuery, conn: Connection, srid: int, params: dict[str, Any]) -> str:
+    """The bbox condition. In the database CRS: `ST_Intersects` with the box. In CRS84: the box,
+    clipped to the data's extent (with a margin), transformed densified into the database SRID
+    for the index (`&&`), then `ST_Intersects` of the geometry transformed to WGS 84 with the
+    lon/lat box (both tests against a rectangle: exact also for vertical walls, whose 2D
+    polygons have no area)."""
+    assert q.bbox is not None
+    x0, y0, x1, y1 = q.bbox
+    box = "CAST(:bx0 AS float8), CAST(:by0 AS float8), CAST(:bx1 AS float8), CAST(:by1 AS float8)"
+    if q.bbox_crs.geographic:
+        extent = data_extent(conn, srid)
+        if not extent:
+            return "FALSE"
+        e0, f0, e1, f1 = extent["crs84"]
+        m = 0.01
+        x0, y0, x1, y1 = max(x0, e0 - m), max(y0, f0 - m), min(x1, e1 + m), min(y1, f1 + m)
+        if x0 > x1 or y0 > y1:
+            return "FALSE"
+        params["bseg"] = max(x1 - x0, y1 - y0, 1e-9) / 32
+        dense = f"ST_Segmentize(ST_MakeEnvelope({box}, 4326), CAST(:bseg AS float8))"
+        env = f"ST_Transform({dense}, CAST(:srid AS int))"
+        test = rf"(\1 && {env} AND ST_Intersects(ST_Transform(\1, 4326), ST_MakeEnvelope({box}, 4326)))"
+    else:
+        test = rf"ST_Intersects(\1, ST_MakeEnvelope({box}, CAST(:srid AS int)))"
+    params.update(bx0=x0, by0=y0, bx1=x1, by1=y1)
+    return re.sub(r"INTERSECTS\(([^()]+)\)", test, c.bbox_sql)
+
+
+def count_matched(
+    conn: Connection, c: Collection, q: ItemsQuery, from_sql: str, where: str, params: dict
+) -> int | None:
+    """numberMatched of the query (None above `COUNT_CAP`), kept `COUNT_TTL_S` seconds."""
+    key = ("count", str(conn.engine.url), q.fingerprint)
+    hit = _cache.get(key, COUNT_TTL_S)
+    if hit is not None:
+        return hit if hit >= 0 else None
+    n = conn.execute(
+        text(f"SELECT count(*) FROM (SELECT 1 FROM {from_sql} WHERE {where} LIMIT {COUNT_CAP}) x"), params
+    ).scalar_one()
+    _cache.put(key, -1 if n >= COUNT_CAP else int(n))
+    return None if n >= COUNT_CAP else int(n)
