@@ -118,7 +118,8 @@ LEFT JOIN LATERAL (
                 THEN sum(st.texels_observed)::float8 / sum(st.texels_total) END AS observed_share,
            sum(st.mean_k * st.texels_observed) FILTER (WHERE st.mean_k IS NOT NULL)
              / NULLIF(sum(st.texels_observed) FILTER (WHERE st.mean_k IS NOT NULL), 0) AS mean_k,
-           min(st.min_k) AS min_k, max(st.max_k) AS max_k, max(st.p95_k) AS max_p95_k
+           min(st.min_k) AS min_k, max(st.max_k) AS max_k, max(st.p95_k) AS max_p95_k,
+           sum(st.leaks) AS leaks, sum(st.windows) AS windows
     FROM surface_thermal st WHERE st.appearance_id = ta.id
 ) tt ON ta.id IS NOT NULL""",
     key="b.id",
@@ -149,6 +150,8 @@ LEFT JOIN LATERAL (
         ("min_k", "tt.min_k"),
         ("max_k", "tt.max_k"),
         ("max_p95_k", "tt.max_p95_k"),
+        ("leaks", "tt.leaks"),
+        ("windows", "tt.windows"),
     ),
     filters=(
         Filter("theme", " AND a.theme = :theme", slot="thermal", description="Appearance theme."),

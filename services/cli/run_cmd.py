@@ -140,8 +140,8 @@ def run(
     no_orient: bool = typer.Option(
         False,
         "--no-orient",
-        help="With refinement: skip the sequence orientation of drives (feature tracks and a block "
-        "adjustment of all frames with the model before the buildings).",
+        help="With refinement: skip the sequence orientation of drives and terrestrial sequences "
+        "(feature tracks and a block adjustment of all frames with the model before the buildings).",
     ),
     no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
     no_anomalies: bool = typer.Option(

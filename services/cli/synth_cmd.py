@@ -28,10 +28,12 @@ from workers.pipeline.synth import (
     SensorOptions,
     SynthError,
     SynthOptions,
+    ThermalOptions,
     default_camera,
     procedural_block,
     synthesize,
 )
+from workers.pipeline.synth.trajectory import TerrestrialOptions
 
 
 def _triple(text: str | None, name: str) -> tuple[float, float, float] | None:
@@ -74,7 +76,9 @@ def synth(
     out: Path = typer.Option(..., "-o", "--out", help="Package folder to write."),
     model: Path | None = typer.Option(None, "--model", help="CityGML model (default: bundled Berlin LoD2)."),
     procedural: int = typer.Option(0, "--procedural", help="Use a procedural block of N houses instead."),
-    platform: str = typer.Option("drive", "--platform", help="drive or flight."),
+    platform: str = typer.Option(
+        "drive", "--platform", help="drive, flight or terrestrial (a hand-held camera along one facade)."
+    ),
     buildings: str = typer.Option("5", "--buildings", help="Cluster: a count or comma-separated ids."),
     frames: int = typer.Option(100, "--frames", help="Number of frames."),
     seed: int = typer.Option(0, "--seed", help="Seed of everything random."),
@@ -82,7 +86,9 @@ def synth(
     interval: float = typer.Option(0.1, "--interval", help="Seconds between frames."),
     speed: float | None = typer.Option(None, "--speed", help="m/s (default 8 drive, 20 flight)."),
     height: float | None = typer.Option(None, "--height", help="m above ground (default 2.25 / 200)."),
-    distance: float = typer.Option(11.0, "--distance", help="Drive: metres from the facades (8-15)."),
+    distance: float = typer.Option(
+        11.0, "--distance", help="Drive / terrestrial: metres from the facades (8-15; terrestrial 10)."
+    ),
     pattern: str = typer.Option("circle", "--pattern", help="Flight: circle or strips."),
     no_errors: bool = typer.Option(False, "--no-errors", help="Error-free GNSS/INS, mounting, delay."),
     bias_h: float = typer.Option(1.5, "--bias-h", help="GNSS position bias, horizontal, m."),
@@ -95,6 +101,9 @@ def synth(
     lever_arm: str | None = typer.Option(None, "--lever-arm", help="True lever arm x,y,z m (body)."),
     delay: float = typer.Option(0.02, "--delay", help="Camera-to-INS time delay, s."),
     gcps: int = typer.Option(0, "--gcps", help="Number of ground control points."),
+    leaks: float = typer.Option(
+        1.0, "--leaks", min=0.0, help="Planted heat leaks per building (Poisson mean; 0: none)."
+    ),
     netd: float = typer.Option(0.05, "--netd", help="Temporal noise, K."),
     psf: float = typer.Option(0.6, "--psf", help="Gaussian blur sigma, px."),
     column_noise: float = typer.Option(0.03, "--column-noise", help="Fixed-pattern column noise, K."),
@@ -106,8 +115,8 @@ def synth(
 ) -> None:
     """Render a synthetic TIR sequence package of a city model, with a ground-truth file."""
     console = Console()
-    if platform not in ("drive", "flight"):
-        raise typer.BadParameter(f"--platform must be drive or flight, got {platform!r}")
+    if platform not in ("drive", "flight", "terrestrial"):
+        raise typer.BadParameter(f"--platform must be drive, flight or terrestrial, got {platform!r}")
     errors = ErrorOptions(
         enabled=not no_errors,
         position_bias_h_m=bias_h,
@@ -121,10 +130,13 @@ def synth(
         time_delay_s=delay,
     )
     drive, flight = DriveOptions(distance_m=distance), FlightOptions(pattern=pattern)  # type: ignore[arg-type]
+    terrestrial = TerrestrialOptions(distance_m=distance if distance != 11.0 else 10.0)
     if speed is not None:
         drive, flight = replace(drive, speed_mps=speed), replace(flight, speed_mps=speed)
+        terrestrial = replace(terrestrial, speed_mps=speed)
     if height is not None:
         drive, flight = replace(drive, height_m=height), replace(flight, height_m=height)
+        terrestrial = replace(terrestrial, height_m=height)
     try:
         if procedural > 0:
             blds, model_path, proc = procedural_block(procedural, seed), None, (procedural, seed)
@@ -148,6 +160,8 @@ def synth(
             camera=default_camera(width, image_height, hfov),
             drive=drive,
             flight=flight,
+            terrestrial=terrestrial,
+            thermal=ThermalOptions(leaks_per_building=leaks),
             errors=errors,
             sensor=SensorOptions(
                 psf_sigma_px=psf,

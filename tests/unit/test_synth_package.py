@@ -105,3 +105,21 @@ def test_cli_writes_a_readable_package(tmp_path):
         assert np.isfinite(pkg.frames.load(2)).all()
     r = runner.invoke(app, ["synth", "--procedural", "3", "--buildings", "nope", "-o", str(tmp_path / "x")])
     assert r.exit_code == 1 and "unknown building" in r.output
+
+
+def test_cli_terrestrial_walk_with_planted_leaks(tmp_path):
+    """`--platform terrestrial` walks a hand-held camera along one facade; `--leaks` sets the
+    planted leaks per building (their truth with half-maximum outlines in the truth file)."""
+    runner = CliRunner()
+    out = tmp_path / "walk"
+    r = runner.invoke(
+        app,
+        ["synth", "--procedural", "3", "--platform", "terrestrial", "--buildings", "1", "--frames", "3",
+         "--leaks", "4", "--width", "64", "--image-height", "48", "--no-errors", "-o", str(out)],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    truth = load_truth(tmp_path / "walk.truth.json")
+    assert truth.platform == "terrestrial"
+    assert len(truth.anomalies) >= 4  # Poisson mean 4 per rendered building
+    r = runner.invoke(app, ["synth", "--procedural", "3", "--platform", "boat", "-o", str(tmp_path / "b")])
+    assert r.exit_code != 0 and "terrestrial" in r.output
