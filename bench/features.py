@@ -251,7 +251,7 @@ def main() -> None:
         "data": {"copies": args.copies, **data, "numberMatched": matched},
         "server": {
             "uvicorn_workers": args.workers,
-            "db_pool_size": args.pool_size or "default (5 + 10 overflow)",
+            "db_pool_size": args.pool_size or "default (CITYTHERM_DATABASE_POOL_SIZE 20 + 10 overflow)",
             "clients": args.clients,
             "page": 100,
         },
