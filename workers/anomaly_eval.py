@@ -8,10 +8,20 @@ frames observed (`Coverage`: the fused textures, NaN = not observed). Out: plain
 figures (`evaluate_leaks`, `evaluate_windows`, `false_leak_rate`). Pure: no files, no database.
 
 What counts:
-- a truth item is **observed** when at least `observed_share` (50 %) of its area (a leak's
-  half-maximum outline, a window's rectangle) is observed: share of the texel centres inside
-  the region, of the grid of its polygon, that carry a value (`Coverage.observed_share`; a
-  region holding no texel centre takes the texel under its centre);
+- a truth item is **observed** (`EvalOptions`, the default definition, the same for every
+  case) when
+  1. at least `observed_share` (50 %) of its area (a leak's half-maximum disc, a window's
+     rectangle) is seen by at least `min_frames` (2) distinct frames: share of the texel
+     centres inside the region, of the grid of its polygon, whose fused texel rests on kept
+     observations from `min_frames` distinct frames (`Coverage.observed_share`; a region
+     holding no texel centre takes the texel under its centre). The issue has the detector
+     ignore texels seen by one frame only, so the evaluation does not ask it to find what they
+     show;
+  2. it is **resolvable** on its polygon's texel grid: a leak's half-maximum diameter spans at
+     least `min_leak_texels` (2) texels, a window pane at least `min_pane_texels` (3) texels
+     on each side;
+  `EvalOptions.texels_only()` is the earlier definition (any value in ≥ 50 % of the region,
+  no frame count, no resolution), kept for comparison;
 - a **leak match**: a detection of kind `leak` whose centre lies within `match_distance_m`
   (0.5 m, 3D) of a truth leak's centre; pairs taken greedily by distance, one-to-one. A window
   match: a `window` detection within 0.5 m, or with outline IoU ≥ `window_iou` (0.5);
@@ -21,10 +31,12 @@ What counts:
 - false leaks per 100 m²: unmatched `leak` detections per 100 m² of observed area (walls, the
   facade figure of the issue's bar, and all surfaces).
 
-Which places were observed is decided from the job's own product, the fused textures of its
-results folder (`bench/anomalies.py` `coverage_of`: `db.results_folder.read.iter_surface_textures`
-gives each textured polygon's grid and values, DN 0 read as NaN): a leak on a surface the job
-never textured, or whose frames it withheld, counts as not observed, whatever the frames show.
+Which places were observed is decided from the job's own product: the fused textures of its
+units as the job held them in memory (`bench/anomalies.py` records, for every textured polygon,
+its grid, fused values and distinct frames per texel while the job runs: the results folder
+keeps no frame counts), or the results folder's textures (`coverage_of`, DN 0 read as NaN; no
+frame counts: only `EvalOptions.texels_only()` applies). A leak on a surface the job never
+textured, or whose frames it withheld, counts as not observed, whatever the frames show.
 """
 
 from __future__ import annotations
@@ -46,11 +58,21 @@ from workers.pipeline.texture.texel import TexelGrid
 
 @dataclass(frozen=True)
 class EvalOptions:
-    """Thresholds of the evaluation (issue 16)."""
+    """Thresholds of the evaluation (issue 16) and the definition of "observed" (module
+    docstring)."""
 
     match_distance_m: float = 0.5  # detection centre to truth centre, 3D
     window_iou: float = 0.5  # a window also matches with outline IoU at least this
     observed_share: float = 0.5  # share of a truth region observed for it to count
+    min_frames: int = 2  # distinct frames a texel needs to count as observed
+    min_leak_texels: float = 2.0  # a leak's half-maximum diameter must span this many texels
+    min_pane_texels: float = 3.0  # a window's sides must each span this many texels
+
+    @classmethod
+    def texels_only(cls) -> EvalOptions:
+        """The earlier definition: a region is observed when half of it has a value (any number
+        of frames, any texel size)."""
+        return cls(min_frames=1, min_leak_texels=0.0, min_pane_texels=0.0)
 
 
 class Detection(Protocol):
@@ -66,18 +88,42 @@ class Detection(Protocol):
 class Coverage:
     """Which texels a job observed, per polygon: `textures` maps polygon id to its texel grid
     and fused texture `(H, W)` (NaN = not observed), e.g. a results folder's
-    (`db.results_folder.read.iter_surface_textures`)."""
+    (`db.results_folder.read.iter_surface_textures`); `frames` (optional) maps polygon id to
+    the distinct frames `(H, W)` int behind each fused texel (the job's in-memory textures,
+    `anomalies.typical.frames_per_texel`)."""
 
-    def __init__(self, textures: Mapping[str, tuple[TexelGrid, np.ndarray]]) -> None:
+    def __init__(
+        self,
+        textures: Mapping[str, tuple[TexelGrid, np.ndarray]],
+        frames: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
         self.textures = dict(textures)
+        self.frames = None if frames is None else dict(frames)
 
-    def observed_share(self, polygon_id: str, ring: np.ndarray) -> float:
+    def seen(self, polygon_id: str, min_frames: int = 1) -> np.ndarray | None:
+        """`(H, W)` bool: texels with a value seen by at least `min_frames` distinct frames
+        (None: polygon not textured). Raises ValueError when `min_frames` > 1 and the coverage
+        has no frame counts."""
+        got = self.textures.get(polygon_id)
+        if got is None:
+            return None
+        ok = np.isfinite(got[1])
+        if min_frames > 1:
+            if self.frames is None:
+                raise ValueError("coverage without frame counts: use EvalOptions.texels_only()")
+            n = self.frames.get(polygon_id)
+            ok = ok & (n >= min_frames) if n is not None else np.zeros_like(ok)
+        return ok
+
+    def observed_share(self, polygon_id: str, ring: np.ndarray, min_frames: int = 1) -> float:
         """Share 0-1 of the region `ring` `(N, 3)` (world, on the polygon) that was observed: its
-        texel centres inside the polygon with a value (0 when the polygon has no texture)."""
+        texel centres inside the polygon with a value seen by at least `min_frames` distinct
+        frames (0 when the polygon has no texture)."""
         got = self.textures.get(polygon_id)
         if got is None or len(ring) < 3:
             return 0.0
-        grid, value = got
+        grid = got[0]
+        value = np.where(self.seen(polygon_id, min_frames), 0.0, np.nan)
         xy = grid.raster_xy(np.asarray(ring, float).reshape(-1, 3))
         region = shapely.Polygon(xy).buffer(0)
         H, W = grid.shape
@@ -195,13 +241,26 @@ def _median(values: Sequence[float]) -> float | None:
     return None if len(values) == 0 else round(float(np.median(values)), 4)
 
 
-def _observed(coverage: Coverage | None, polygon_id: str, ring: np.ndarray | None, share: float) -> bool:
-    """Whether a truth region counts as observed (no coverage: every region does)."""
+def _observed(
+    coverage: Coverage | None,
+    polygon_id: str,
+    ring: np.ndarray | None,
+    sides_m: tuple[float, ...],
+    min_texels: float,
+    options: EvalOptions,
+) -> bool:
+    """Whether a truth region counts as observed (module docstring; no coverage: every region
+    does): `options.observed_share` of it seen by `options.min_frames` frames, and each of
+    `sides_m` (a leak's half-maximum diameter, a pane's width and height) at least `min_texels`
+    texels of its polygon's grid."""
     if coverage is None:
         return True
     if ring is None:
         raise ValueError(f"truth region on {polygon_id!r} has no outline (old truth: Anomaly.with_outline)")
-    return coverage.observed_share(polygon_id, ring) >= share
+    size = coverage.texel_size_m(polygon_id)
+    if size is None or min(sides_m) < min_texels * size - 1e-9:
+        return False
+    return coverage.observed_share(polygon_id, ring, options.min_frames) >= options.observed_share
 
 
 def evaluate_leaks(
@@ -214,7 +273,11 @@ def evaluate_leaks(
     (K), centre error median (m), false leaks per 100 m² (walls and all surfaces, when
     `coverage` is given), and the ids of the observed leaks missed (up to 10)."""
     det = [d for d in detections if d.kind == "leak"]
-    seen = [_observed(coverage, a.polygon_id, a.outline, options.observed_share) for a in truth]
+    o = options
+    seen = [
+        _observed(coverage, a.polygon_id, a.outline, (2 * a.half_max_radius_m,), o.min_leak_texels, o)
+        for a in truth
+    ]
     matches = greedy_match(
         np.array([d.centre for d in det]).reshape(-1, 3),
         np.array([a.center for a in truth]).reshape(-1, 3),
@@ -294,7 +357,11 @@ def evaluate_windows(
     """Window figures of one scene: counts, precision, recall (a match: centre within
     `match_distance_m` or outline IoU ≥ `window_iou`), outline IoU median of the matches."""
     det = [d for d in detections if d.kind == "window"]
-    seen = [_observed(coverage, w.polygon_id, w.outline, options.observed_share) for w in truth]
+    o = options
+    seen = [
+        _observed(coverage, w.polygon_id, w.outline, (w.width_m, w.height_m), o.min_pane_texels, o)
+        for w in truth
+    ]
     D = np.array([d.centre for d in det]).reshape(-1, 3)
     T = np.array([w.center for w in truth]).reshape(-1, 3)
     extra: dict[tuple[int, int], bool] = {}

@@ -52,12 +52,14 @@ def det(centre, peak: float = 3.0, kind: str = "leak", outline: np.ndarray | Non
     return Detected("h", WALL.id, ring, c, 1.0, peak, 0.5 * peak, kind)
 
 
-def coverage(observed_from_x: float = -1.0) -> Coverage:
-    """The wall observed where x > `observed_from_x` (NaN elsewhere)."""
-    r, c = np.indices(GRID.shape)
-    x = GRID.centres(r.ravel(), c.ravel())[:, 0].reshape(GRID.shape)
-    value = np.where(GRID.mask & (x > observed_from_x), 276.0, np.nan).astype(np.float32)
-    return Coverage({WALL.id: (GRID, value)})
+def coverage(observed_from_x: float = -1.0, one_frame_from_x: float = 99.0, grid=GRID) -> Coverage:
+    """The wall observed where x > `observed_from_x` (NaN elsewhere), by 3 frames, but by one
+    frame only where x > `one_frame_from_x`."""
+    r, c = np.indices(grid.shape)
+    x = grid.centres(r.ravel(), c.ravel())[:, 0].reshape(grid.shape)
+    value = np.where(grid.mask & (x > observed_from_x), 276.0, np.nan).astype(np.float32)
+    frames = np.where(np.isfinite(value), np.where(x > one_frame_from_x, 1, 3), 0)
+    return Coverage({WALL.id: (grid, value)}, {WALL.id: frames})
 
 
 TRUTH = [leak(0, 3.0, 3.0), leak(1, 8.0, 2.0)]
@@ -139,6 +141,33 @@ def test_observed_share_and_unobserved_leaks():
     assert cov.observed_share(WALL.id, more.outline) == pytest.approx(0.6, abs=0.05)
     assert cov.observed_share(WALL.id, less.outline) == pytest.approx(0.4, abs=0.05)
     assert evaluate_leaks([more, less], [], cov)["truth_observed"] == 1
+
+
+def test_observed_needs_two_frames_and_a_resolvable_size():
+    # the leak at x = 8 lies where one frame only saw the wall: not observed (the detector may
+    # not report it), but observed by the earlier definition
+    cov = coverage(one_frame_from_x=6.0)
+    assert cov.observed_share(WALL.id, TRUTH[1].outline) == 1.0
+    assert cov.observed_share(WALL.id, TRUTH[1].outline, min_frames=2) == 0.0
+    assert cov.observed_share(WALL.id, TRUTH[0].outline, min_frames=2) == 1.0
+    f = evaluate_leaks(TRUTH, [det(a.center) for a in TRUTH], cov)
+    assert (f["truth_observed"], f["matched"], f["matched_unobserved_ignored"]) == (1, 1, 1)
+    old = evaluate_leaks(TRUTH, [det(a.center) for a in TRUTH], cov, ev.EvalOptions.texels_only())
+    assert (old["truth_observed"], old["matched"]) == (2, 2)
+    # without frame counts only the earlier definition applies
+    bare = Coverage(cov.textures)
+    with pytest.raises(ValueError, match="frame counts"):
+        evaluate_leaks(TRUTH, [], bare)
+    assert evaluate_leaks(TRUTH, [], bare, ev.EvalOptions.texels_only())["truth_observed"] == 2
+    # resolvable: the half-maximum diameter (2 · 1.177 · 0.5 = 1.18 m) spans >= 2 texels at
+    # 0.5 m, not at 0.6 m; a 1.2 x 1.4 m pane spans >= 3 texels a side at 0.4 m, not at 0.5 m
+    for size, leaks_seen, panes_seen in ((0.4, 2, 1), (0.5, 2, 0), (0.6, 0, 0)):
+        grid = texel_grid(WALL, "h", TexelOptions(resolution_px_per_m=1.0 / size))
+        cov = coverage(grid=grid)
+        assert evaluate_leaks(TRUTH, [], cov)["truth_observed"] == leaks_seen, size
+        assert evaluate_windows([window(4.0, 1.0)], [], cov)["truth_observed"] == panes_seen, size
+        old = ev.EvalOptions.texels_only()
+        assert evaluate_leaks(TRUTH, [], cov, old)["truth_observed"] == 2
 
 
 def test_window_matching_by_centre_or_iou():

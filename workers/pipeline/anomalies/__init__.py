@@ -8,7 +8,9 @@ window share, heat-loss index, the anomalies as `results.Anomaly` (kinds "window
 "bridge"; closed 3D rings on the surface plane) and a `(H, W)` label raster. Pure numpy/OpenCV;
 the method, its rules and the figures' formulas and limits: `docs/anomalies.md`.
 
-Entry point: `analyse_surface(grid, texture, options) -> SurfaceAnalysis`.
+Entry points: `analyse_surface(grid, texture, options) -> SurfaceAnalysis` (one polygon) and
+`analyse_building(grids, textures, options) -> list[SurfaceAnalysis]` (a building unit's
+polygons, coplanar adjacent ones analysed together as one facade; one result per polygon).
 
 Modules, one per step:
 - `options`: `AnomalyOptions`, `AnomalyError`.
@@ -19,9 +21,18 @@ Modules, one per step:
 - `outline`: texel regions to closed 3D rings (`outline`).
 - `figures`: hot share, window share, heat-loss index.
 - `analysis`: `analyse_surface`, `SurfaceAnalysis`.
+- `building`: facades across polygons (`facade_groups`, `analyse_building`).
 """
 
 from workers.pipeline.anomalies.analysis import SurfaceAnalysis, analyse_surface
+from workers.pipeline.anomalies.building import analyse_building, facade_groups
 from workers.pipeline.anomalies.options import AnomalyError, AnomalyOptions
 
-__all__ = ["AnomalyError", "AnomalyOptions", "SurfaceAnalysis", "analyse_surface"]
+__all__ = [
+    "AnomalyError",
+    "AnomalyOptions",
+    "SurfaceAnalysis",
+    "analyse_building",
+    "analyse_surface",
+    "facade_groups",
+]

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from workers.pipeline.anomalies import figures
-from workers.pipeline.anomalies.leaks import LeakInputs, Region, find_leaks
+from workers.pipeline.anomalies.leaks import HALF_MAX_RADIUS, LeakInputs, Region, find_leaks, fit_blob
 from workers.pipeline.anomalies.lines import line_profiles, runs
 from workers.pipeline.anomalies.options import AnomalyError, AnomalyOptions
 from workers.pipeline.anomalies.outline import bbox, box_ring, outline, world_ring
@@ -157,7 +157,7 @@ def analyse_surface(
             found.append(("window", a))
     leak_mask = np.zeros_like(observed)
     for r in regions:
-        a = _region_anomaly(grid, texture, r, frames_n, thr, min_frames, o.blur_per_px)
+        a = _region_anomaly(grid, texture, r, frames_n, thr, min_frames, o, (residual, usable))
         if a is None:
             continue
         found.append((r.kind, a))
@@ -174,7 +174,7 @@ def analyse_surface(
         hot_share=figures.hot_share(excess, observed, window_mask, o.hot_delta_k),
         window_share=figures.window_share(observed, window_mask),
         heat_loss_index=figures.heat_loss_index(residual, observed, leak_mask),
-        anomalies=_with_ids(grid, found),
+        anomalies=with_ids(grid, found),
         labels=labels,
     )
 
@@ -225,8 +225,12 @@ def _region_anomaly(
     frames_n: np.ndarray,
     thr: float,
     min_frames: int,
-    blur_per_px: float,
+    o: AnomalyOptions,
+    fit_on: tuple[np.ndarray, np.ndarray],
 ) -> Anomaly | None:
+    """The anomaly of one region; a leak's ΔT is the amplitude of the blob before the imaging
+    blur (`leaks.fit_blob` on `fit_on` = (residual, usable texels); `blur_gain` on the measured
+    amplitude when that fit finds no background)."""
     res = outline(grid, r.shape)
     if res is None:
         return None
@@ -234,27 +238,80 @@ def _region_anomaly(
     frames = _frames(texture, r.mask)
     support = float(np.mean(frames_n[r.mask] >= min_frames))
     conf = _confidence(r.peak, thr, int(r.mask.sum()), frames, support)
-    centre = grid.points_at(r.centre_xy[None])[0]
+    centre_xy = r.centre_xy
     best = _best_res(texture, r.mask)
     k = 1.0
-    if r.kind == "leak" and blur_per_px > 0 and np.isfinite(best):
-        k = blur_gain(float(r.mask.sum()) * grid.size**2, blur_per_px * best)
+    if r.kind == "leak" and o.psf_sigma_px > 0:
+        b_long, b_short = region_blur_m(texture, r.mask, o.psf_sigma_px)
+        n = float(r.mask.sum())
+        k = blur_gain(n * grid.size**2, b_long, b_short)
+        sigma_obs = math.sqrt(n / math.pi) / HALF_MAX_RADIUS
+        blob = fit_blob(*fit_on, *r.centre_xy, sigma_obs, math.sqrt(b_long * b_short) / grid.size)
+        if blob is not None and r.peak > 0:
+            k = min(blob[0] / r.peak, BLUR_GAIN_CAP)
+            centre_xy = np.array(blob[3:])
+    centre = grid.points_at(centre_xy[None])[0]
     return Anomaly(
         grid.building_id, grid.polygon_id, ring, centre, area, r.peak * k, r.mean * k, r.kind,
         frames=frames, best_resolution_m=best, confidence=conf,
     )  # fmt: skip
 
 
-def blur_gain(area_m2: float, blur_m: float) -> float:
-    """Factor restoring the amplitude of a Gaussian blob seen through a Gaussian blur of σ
-    `blur_m`: `σ_m² / (σ_m² − blur²)`, with σ_m from the half-maximum area (`area_m2`), at most 2.
+#: the largest factor a blur correction applies (a blob hardly larger than the blur is not
+#: resolved: its ΔT is unknown)
+BLUR_GAIN_CAP = 3.0
 
-    >>> round(blur_gain(math.pi * (1.1774 * 0.5) ** 2, 0.3), 2)
-    1.56
+#: variance, in pixels², of the blur one observation adds besides the optics: the pixel's area
+#: (a box of one pixel: 1/12) and the bilinear resampling of the image at the texel centre (a
+#: triangle of two pixels: 1/6)
+PIXEL_VAR_PX2 = 1.0 / 12.0 + 1.0 / 6.0
+
+
+def imaging_blur_m(resolution_m: float, view_angle_deg: float, psf_sigma_px: float) -> tuple[float, float]:
+    """σ (m) of the blur one observation puts on the surface, along the footprint's long axis
+    (the local resolution `resolution_m`, m/px, is the coarser of the two surface axes) and its
+    short axis (foreshortened by the cosine of the viewing angle): `res · sqrt(psf² + 1/12 +
+    1/6)` (optics, pixel area, bilinear resampling), times `cos(view angle)` across.
+
+    >>> [round(v, 3) for v in imaging_blur_m(0.5, 60.0, 0.6)]
+    [0.391, 0.195]
     """
-    s2 = area_m2 / math.pi / (2 * math.log(2))
-    b2 = blur_m * blur_m
-    return 2.0 if s2 <= 2 * b2 else min(2.0, s2 / (s2 - b2))
+    k = resolution_m * math.sqrt(psf_sigma_px**2 + PIXEL_VAR_PX2)
+    c = math.cos(math.radians(view_angle_deg)) if math.isfinite(view_angle_deg) else 1.0
+    return k, k * max(c, 0.0)
+
+
+def region_blur_m(texture: SurfaceTexture, m: np.ndarray, psf_sigma_px: float) -> tuple[float, float]:
+    """`imaging_blur_m` at the median local resolution and viewing angle of the best
+    observations of the region `m (H, W)` (the fused value averages observations within
+    `FusedOptions.blend_ratio` of the best); (0, 0) when unknown."""
+    b = bbox(m)
+    if b is None:
+        return 0.0, 0.0
+    res = texture.resolution[b][m[b]]
+    ang = texture.view_angle[b][m[b]]
+    res, ang = res[np.isfinite(res)], ang[np.isfinite(ang)]
+    if len(res) == 0:
+        return 0.0, 0.0
+    return imaging_blur_m(float(np.median(res)), float(np.median(ang)) if len(ang) else 0.0, psf_sigma_px)
+
+
+def blur_gain(area_m2: float, blur_long_m: float, blur_short_m: float, cap: float = BLUR_GAIN_CAP) -> float:
+    """Factor restoring the amplitude of a round Gaussian blob seen through a Gaussian blur of σ
+    `blur_long_m` along one axis and `blur_short_m` across: the blur conserves the blob's volume,
+    `A σ² = A_obs σx σy` with `σx² = σ² + bl²`, `σy² = σ² + bs²`, and `σx σy` is measured by the
+    half-maximum area (`area = 2 ln 2 · π σx σy`); σ² solves `(σ² + bl²)(σ² + bs²) = (σx σy)²`.
+    At most `cap` (a blob hardly larger than the blur is not resolved: its ΔT is unknown).
+
+    >>> round(blur_gain(math.pi * 2 * math.log(2) * 0.5**2, 0.3, 0.3), 2)
+    1.56
+    >>> blur_gain(1.0, 0.0, 0.0)
+    1.0
+    """
+    s = area_m2 / (math.pi * 2 * math.log(2))  # σx σy
+    a2, b2 = blur_long_m**2, blur_short_m**2
+    u = 0.5 * (-(a2 + b2) + math.sqrt((a2 - b2) ** 2 + 4 * s * s))  # σ² of the blob
+    return cap if u <= s / cap else min(cap, s / u)
 
 
 def _min_finite(r: np.ndarray) -> float:
@@ -276,7 +333,7 @@ def _frames(texture: SurfaceTexture, m: np.ndarray) -> int:
     return len(np.unique(f[f >= 0]))
 
 
-def _with_ids(grid: TexelGrid, found: list[tuple[str, Anomaly]]) -> tuple[Anomaly, ...]:
+def with_ids(grid: TexelGrid, found: list[tuple[str, Anomaly]]) -> tuple[Anomaly, ...]:
     """Ids `<polygon_id>-<kind>-<n>` numbered per kind in reading order of the centres (rows of
     half a metre from the top, then left to right)."""
     if not found:

@@ -38,7 +38,7 @@ import numpy as np
 from workers.pipeline.anomalies.options import AnomalyOptions
 
 _FIT_RADIUS = 2  # texels around the maximum used by the peak fit
-_HALF_MAX_RADIUS = math.sqrt(2 * math.log(2))  # half-maximum radius of a Gaussian, in σ
+HALF_MAX_RADIUS = math.sqrt(2 * math.log(2))  # half-maximum radius of a Gaussian, in σ
 _MIN_AMPLITUDE = 0.75  # a leak's amplitude over its local background, in units of the threshold
 _CLOSE = np.ones((9, 9), np.uint8)  # closes gaps up to 8 texels (a window frame and its margins)
 
@@ -137,6 +137,66 @@ def fit_amplitude(
     return (amp, float(zm - amp * gm)) if amp > 0 else None
 
 
+def fit_blob(
+    values: np.ndarray, valid: np.ndarray, cx: float, cy: float, sigma_obs: float, blur: float
+) -> tuple[float, float, float, float, float] | None:
+    """Amplitude `A`, background `B`, σ (texels) and centre `(x, y)` (continuous raster
+    coordinates) of a round Gaussian blob `A·exp(−d²/2σ²)` seen through a Gaussian blur of σ
+    `blur` (texels), near the raster point `(cx, cy)`: the blurred blob is
+    `A σ²/σo² · exp(−d²/2σo²)`, `σo² = σ² + blur²` (the blur conserves its volume).
+
+    σo is searched on a geometric grid (3 % steps) from a third to twice `sigma_obs` (the
+    half-maximum estimate) at `(cx, cy)`, then the centre on a quarter-texel grid within half a
+    texel of it (σo within 3 steps of the first), then σo again at that centre; `A` and `B`
+    are linear least squares over the `valid` texels within `3·sigma_obs + 1` of `(cx, cy)`
+    (the same texels for every trial); the trial with the smallest squared residual wins. None
+    when fewer than 8 of those texels lie beyond 1.5 `sigma_obs` (no background to fit) or no
+    trial gives a positive amplitude."""
+    H, W = values.shape
+    R = 3 * sigma_obs + 1
+    i0, i1 = max(int(cy - R), 0), min(int(cy + R) + 1, H)
+    j0, j1 = max(int(cx - R), 0), min(int(cx + R) + 1, W)
+    yy, xx = np.mgrid[i0:i1, j0:j1] + 0.5
+    d2 = (yy - cy) ** 2 + (xx - cx) ** 2
+    v = values[i0:i1, j0:j1]
+    ok = valid[i0:i1, j0:j1] & (d2 <= R * R) & np.isfinite(v)
+    if np.count_nonzero(ok & (d2 > 2.25 * sigma_obs * sigma_obs)) < 8:
+        return None
+    xs, ys, z = xx[ok], yy[ok], v[ok].astype(np.float64)
+    so2 = (np.geomspace(1 / 3, 2.0, 61) * sigma_obs) ** 2  # steps of 3 %
+    so2 = so2[so2 - blur * blur >= 0.09]  # blobs narrower than 0.3 texel are not resolved
+    if len(so2) == 0:
+        return None
+    zc = z - z.mean()
+    zz = float(zc @ zc)
+
+    def trial(dx: float, dy: float, ks: np.ndarray) -> tuple[float, int, float]:
+        """Smallest residual sum of squares over the σo of `so2[ks]` at centre offset
+        `(dx, dy)`: (rss, index into so2, amplitude of the blurred blob)."""
+        r2 = (xs - cx - dx) ** 2 + (ys - cy - dy) ** 2
+        g = np.exp(-r2[None] / (2 * so2[ks, None]))  # (S, N)
+        gc = g - g.mean(axis=1, keepdims=True)
+        var = np.einsum("sn,sn->s", gc, gc)
+        a = (gc @ zc) / np.maximum(var, 1e-12)
+        ss = np.where((a > 0) & (var > 1e-9), zz - a * a * var, np.inf)
+        k = int(np.argmin(ss))
+        return float(ss[k]), int(ks[k]), float(a[k])
+
+    # σ at the first centre, the centre at the σ found (± 3 steps), σ again at that centre
+    every = np.arange(len(so2))
+    _, k, _ = trial(0.0, 0.0, every)
+    near = every[max(k - 3, 0) : k + 4]
+    steps = (-0.5, -0.25, 0.0, 0.25, 0.5)
+    ss, dx, dy = min((trial(dx, dy, near)[0], dx, dy) for dy in steps for dx in steps)
+    ss, k, a = trial(dx, dy, every)
+    if not math.isfinite(ss):
+        return None
+    r2 = (xs - cx - dx) ** 2 + (ys - cy - dy) ** 2
+    b = float(z.mean() - a * np.exp(-r2 / (2 * so2[k])).mean())
+    sig2 = float(so2[k] - blur * blur)
+    return a * float(so2[k]) / sig2, b, math.sqrt(sig2), cx + dx, cy + dy
+
+
 def _component(mask: np.ndarray, i: int, j: int, passable: np.ndarray) -> np.ndarray:
     """The texels of `mask` 8-connected to texel `(i, j)` through `mask` or `passable` texels
     (empty if `(i, j)` is not set)."""
@@ -201,7 +261,7 @@ def _region(
     sm = inp.smoothed
     region = _component(inp.usable & (sm >= 0.5 * peak), i, j, inp.passable)
     for _ in range(2):  # amplitude over the local background, then the half-maximum again
-        sigma = max(math.sqrt(region.sum() / math.pi) / _HALF_MAX_RADIUS, 0.7)
+        sigma = max(math.sqrt(region.sum() / math.pi) / HALF_MAX_RADIUS, 0.7)
         ab = fit_amplitude(inp.residual, inp.usable, cx, cy, sigma)
         if ab is None or not 0.5 * peak <= ab[0] <= 2.0 * peak:
             break

@@ -51,10 +51,18 @@ class AnomalyOptions:
             half-maximum disk is 0.6 m wide by the same measure).
         line_min_m: a row/column profile (linear bridges along the texel axes) needs this much
             observed length in each half of the row/column.
-        blur_per_px: σ of the imaging blur (optics, pixel, resampling, fusion) in units of the
-            best local resolution (m/px): a leak's ΔT is restored by `σ_m² / (σ_m² − blur²)`
-            (σ_m from its half-maximum area, at most × 2); 0 switches the correction off. It
-            matters on coarse textures (flights: 0.3–0.5 m/px), hardly on drives.
+        psf_sigma_px: σ of the camera's optical blur, pixels. With the pixel's area and the
+            bilinear resampling it gives the blur of one observation on the surface
+            (`analysis.imaging_blur_m`: local resolution × sqrt(psf² + 1/4), foreshortened
+            across by the viewing angle); a leak's ΔT is the amplitude of a Gaussian blob fitted
+            through that blur (`leaks.fit_blob`: the blur conserves the blob's volume), at most
+            3 × the measured one; 0 switches the blob fit off (the measured amplitude and the
+            5 × 5 fit's centre are reported). It matters on coarse textures (flights: 0.3–0.6
+            m/px), hardly on drives.
+        facade_grouping: `building.analyse_building` analyses coplanar adjacent polygons of a
+            building as one facade (False: each polygon alone).
+        facade_plane_m, facade_angle_deg: coplanar: each polygon's texels within this distance
+            of the other's plane, normals and texel axes within this angle.
         smooth_m: σ of the Gaussian smoothing before seeds and outlines, metres (none below a
             third of a texel: coarse textures are smooth already and leaks span few texels).
     """
@@ -84,7 +92,10 @@ class AnomalyOptions:
     line_width_m: float = 0.35
     line_min_m: float = 1.0
     smooth_m: float = 0.07
-    blur_per_px: float = 0.5
+    facade_grouping: bool = True
+    facade_plane_m: float = 0.05
+    facade_angle_deg: float = 1.0
+    psf_sigma_px: float = 0.6
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -107,7 +118,7 @@ class AnomalyOptions:
             "line_min_m",
             "line_width_m",
         )
-        non_negative += ("smooth_m", "blur_per_px", "outline_band_m")
+        non_negative += ("smooth_m", "psf_sigma_px", "outline_band_m", "facade_plane_m", "facade_angle_deg")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise AnomalyError(f"{name} must be > 0, got {getattr(self, name)}")
