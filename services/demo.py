@@ -26,7 +26,7 @@ from rich.table import Table
 
 from db.citygml.reader import read_model
 from db.synth_files import write_synthetic_package
-from services.cli.run_cmd import run_with_progress, summary_table
+from services.cli.run_cmd import anomalies_line, run_with_progress, summary_table
 from workers.job import RunOptions
 from workers.pipeline.synth import BUNDLED_MODEL, ErrorOptions, SynthOptions, synthesize
 from workers.synth_eval import orientation_accuracy, texture_accuracy
@@ -82,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     summary = run_with_progress(BUNDLED_MODEL, pkg, out / "results", options, console)
     console.print(summary_table(summary))
+    console.print(anomalies_line(summary))
 
     acc = texture_accuracy(out / "results", res)
     table = Table(title="texture error against the ground truth")
@@ -105,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
             )
     console.print(table)
     console.print(
-        f"results: {(out / 'results').resolve()}  (textured.gml, textures/, orientation.json, report.json)"
+        f"results: {(out / 'results').resolve()}  (textured.gml, textures/, orientation.json, "
+        "anomalies.geojson, report.json)"
     )
     console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s")
     return 0
