@@ -8,9 +8,11 @@ into a fresh bench database, with one job's thermal statistics for every surface
 (as `tests/integration/test_api_features.py` does): one facade feature per surface.
 
 Figures (JSON): per phase, requests, p50 / p95 / p99 / max latency (ms) and requests/s (also
-with one client: a request's cost without queueing); the single cold first-page request (its
-numberMatched counted; later first pages reuse the count for `COUNT_TTL_S` seconds, deep pages
-carry it in the cursor); the load average of the shared machine.
+with one client: a request's cost without queueing), and the CPU ms per request of the server
+(its processes), of PostgreSQL (all its processes on the machine) and of the clients (this
+process): unlike latencies on a shared machine, these do not depend on the other load; the
+single cold first-page request (its numberMatched counted; later first pages reuse the count for
+`COUNT_TTL_S` seconds, deep pages carry it in the cursor); the load average of the machine.
 Bar (issue 17): p95 < 100 ms at the first page and deep.
 
 Usage: `python bench/features.py [--copies 87] [--clients 20] [--requests 40] [--workers 2]
@@ -191,6 +193,53 @@ def hammer(base: str, key: str | None, url: str, clients: int, requests: int) ->
     }
 
 
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of process `pid` so far (0 when it is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _processes() -> dict[int, tuple[int, str]]:
+    """pid -> (parent pid, command name) of every process (Linux `/proc`)."""
+    out: dict[int, tuple[int, str]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    head, rest = f.read().rsplit(")", 1)
+                out[int(d)] = (int(rest.split()[1]), head.split("(", 1)[1])
+            except (OSError, IndexError, ValueError):
+                continue
+    return out
+
+
+def cpu_snapshot(server_pid: int) -> dict[str, float]:
+    """CPU seconds so far of the server (its process and descendants), of every PostgreSQL
+    process of the machine (other work's queries included) and of this process (the clients)."""
+    procs = _processes()
+    tree, todo = {server_pid}, [server_pid]
+    while todo:
+        parent = todo.pop()
+        kids = [p for p, (pp, _) in procs.items() if pp == parent and p not in tree]
+        tree.update(kids)
+        todo += kids
+    return {
+        "server": sum(_cpu_s(p) for p in tree),
+        "postgres": sum(_cpu_s(p) for p, (_, name) in procs.items() if name == "postgres"),
+        "client": sum(os.times()[:2]),
+    }
+
+
+def cpu_per_request(before: dict[str, float], after: dict[str, float], requests: int) -> dict[str, float]:
+    """CPU ms per request of each party between two `cpu_snapshot`s (independent of the
+    machine's other load, unlike latencies)."""
+    return {k: round(1000 * (after[k] - before[k]) / max(requests, 1), 2) for k in before}
+
+
 def deep_url(base: str, key: str | None, path: str, skip: int, limit: int) -> str:
     """The `next` link reached after `skip` features, pages of `limit`, followed like a client."""
     import httpx
@@ -235,8 +284,13 @@ def main() -> None:
         matched = cold.json().get("numberMatched")
         deep = deep_url(base, key, path, args.deep, 100)
         hammer(base, key, f"{path}?limit=100", args.clients, 5)  # warm-up: connections, plans
+        c0 = cpu_snapshot(proc.pid)
         first = hammer(base, key, f"{path}?limit=100", args.clients, args.requests)
+        c1 = cpu_snapshot(proc.pid)
         deep_fig = hammer(base, key, deep, args.clients, args.requests)
+        c2 = cpu_snapshot(proc.pid)
+        first["cpu_ms_per_request"] = cpu_per_request(c0, c1, first["requests"])
+        deep_fig["cpu_ms_per_request"] = cpu_per_request(c1, c2, deep_fig["requests"])
         alone = {  # one client: the cost of a request without queueing
             "first_page": hammer(base, key, f"{path}?limit=100", 1, args.requests),
             f"after_{args.deep}": hammer(base, key, deep, 1, args.requests),

@@ -44,6 +44,13 @@ class Settings(BaseSettings):
     )
     # the service (docs/service.md)
     api_read_open: bool = Field(False, description="GET requests need no API key.")
+    api_key_cache_s: float = Field(
+        5.0,
+        ge=0,
+        le=300,
+        description="Seconds an API process keeps an authenticated key's scopes without asking the "
+        "database again (0: ask every request); a revoked key is refused within this time.",
+    )
     max_upload_bytes: int = Field(20 * 1024**3, description="Largest CityGML upload or sequence upload.")
     min_free_bytes: int = Field(
         1024**3, description="Uploads are refused (507) when the storage would keep less free space."

@@ -4,7 +4,7 @@ database: the service layer of `routes_features` (`docs/features.md`).
 In: an engine, the collection id, the raw query parameters, the API's base URL. Out: JSON-ready
 dicts (collections) and the bytes of GeoJSON documents (items), with their `Content-Crs`.
 
-- Features are built as JSON text by PostgreSQL (`json_build_object`, `ST_AsGeoJSON`), so that a
+- Features are built as JSON text by PostgreSQL (`row_to_json`, `ST_AsGeoJSON`), so that a
   page costs one query and no JSON parsing in Python; pages of more than `STREAM_ABOVE` features
   are streamed from a server-side cursor.
 - Paging is keyset paging on the feature id (`WHERE id > last ORDER BY id LIMIT n + 1`), never
@@ -170,7 +170,8 @@ def items_document(
             where = f"{where} AND {c.key} {'>' if forward else '<'} :cursor_key"
             binds["cursor_key"] = cur.key
         sql = (
-            f"SELECT {features_sql.feature_select(c, props, q.crs)} FROM {from_sql} WHERE {where} "
+            f"SELECT {features_sql.feature_select(c, props, q.crs)} FROM {from_sql}"
+            f"{features_sql.feature_lateral(props)} WHERE {where} "
             f"ORDER BY {c.key} {'ASC' if forward else 'DESC'} LIMIT {q.limit + 1}"
         )
         options = {"yield_per": 500} if stream else {}
@@ -247,8 +248,10 @@ def item_document(
         srid = features_sql.database_srid_cached(engine)
         out = parse_crs(crs, srid)
         from_sql = c.from_sql.format(**{s: "" for s in c.slots})
+        props = features_sql.properties(conn, c)
         sql = (
-            f"SELECT {features_sql.feature_select(c, features_sql.properties(conn, c), out)} FROM {from_sql} "
+            f"SELECT {features_sql.feature_select(c, props, out)} FROM {from_sql}"
+            f"{features_sql.feature_lateral(props)} "
         )
         row = conn.execute(
             text(f"{sql} WHERE ({c.where}) AND {c.key} = :key"), {"key": key, "srid": srid}

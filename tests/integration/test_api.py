@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import json
 import subprocess
+import time
 import uuid
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from tests.integration.conftest import (
 from workers.pipeline.synth import BUNDLED_MODEL
 
 pytestmark = pytest.mark.integration
+
 
 # -- documents ---------------------------------------------------------------------------------
 def test_landing_conformance_processes_openapi(api: ApiServer) -> None:
@@ -79,6 +81,10 @@ def test_api_keys(api: ApiServer, make_api) -> None:
         assert row["scopes"] == ["read"] and row["revoked"] is None and key not in listed.stdout
         revoke = [citytherm_exe(), "apikey", "revoke", str(row["id"])]
         subprocess.run(revoke, env=api.env, check=True, capture_output=True)
+        # refused once the server's key cache (api_key_cache_s, default 5 s) lets go of it
+        deadline = time.monotonic() + 30
+        while c.get("/processes").status_code == 200 and time.monotonic() < deadline:
+            time.sleep(0.25)
         assert_problem(c.get("/processes"), 401)  # revoked
     open_api = make_api(api_read_open="true")
     with open_api.client(None) as c:

@@ -12,6 +12,7 @@ import json
 import os
 import shutil
 import subprocess
+import time
 import uuid
 
 import httpx
@@ -24,7 +25,7 @@ from db.citygml.reader import read_model
 from db.importer import import_citygml
 from db.store import create_job, store_building_result
 from tests.conftest import DATA
-from tests.integration.conftest import TEST_SRID, ApiServer, assert_problem
+from tests.integration.conftest import TEST_SRID, ApiServer, assert_problem, citytherm_exe, new_api_key
 from tests.integration.test_db_store_export import make_result
 from workers.pipeline.geometry.manifest import Radiometry
 
@@ -336,3 +337,33 @@ def test_filters(server: ApiServer, db_engine, data) -> None:
         assert_problem(c.get("/collections/facades/items", params={"kind": "leak"}), 400)
         assert_problem(c.get("/collections/facades/items", params={"cursor": "garbage"}), 400)
         assert_problem(c.get("/collections/facades/items", params={"limit": "0"}), 400)
+
+
+# -- access ------------------------------------------------------------------------------------
+def test_revoked_key_is_refused_once_the_key_cache_expires(api_server_factory, data) -> None:
+    """Authenticated keys are kept `api_key_cache_s` seconds per process (`deps.KeyCache`): a
+    revoked key is refused once that time has passed, and unknown keys are never kept."""
+    ttl = 1.0
+    srv = api_server_factory(api_key_cache_s=ttl)
+    key = new_api_key(srv.env, "read")
+    url = "/collections/facades/items?limit=1"
+    with httpx.Client(base_url=srv.base, headers={"Authorization": f"Bearer {key}"}, timeout=60) as c:
+        assert c.get(url).status_code == 200  # looked up in the database, now cached
+        assert c.get(url).status_code == 200  # from the cache
+        listed = subprocess.run(
+            [citytherm_exe(), "apikey", "list", "--json"],
+            env=srv.env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        (row,) = [k for k in json.loads(listed.stdout) if key.startswith(k["prefix"])]
+        subprocess.run([citytherm_exe(), "apikey", "revoke", str(row["id"])], env=srv.env, check=True)
+        time.sleep(ttl + 0.5)  # the entry has expired: the next request asks the database again
+        r = c.get(url)
+        assert_problem(r, 401)
+        assert r.headers["www-authenticate"].startswith("Bearer")
+        assert_problem(c.get(url), 401)  # a revoked key is not kept
+    with httpx.Client(base_url=srv.base, timeout=60) as c:
+        for _ in range(2):  # an unknown key is refused every time
+            assert_problem(c.get(url, headers={"Authorization": "Bearer ct_unknown"}), 401)
