@@ -114,15 +114,20 @@ def physical_from_raw(arr: np.ndarray, radiometry: Radiometry) -> np.ndarray:
 #: bytes of decoded frames kept per process (`PackageFrames.raw`)
 FRAME_CACHE_BYTES = 256 * 1024**2
 _FRAMES: OrderedDict[tuple[str, int, int], np.ndarray] = OrderedDict()
+_CACHED_BYTES = [0]  # bytes held in `_FRAMES`, kept as frames come and go (no sum per insert)
 
 
 def _remember(key: tuple[str, int, int], arr: np.ndarray) -> None:
-    """Keep a decoded frame, dropping the least recently used beyond `FRAME_CACHE_BYTES`."""
+    """Keep a decoded frame, dropping the least recently used beyond `FRAME_CACHE_BYTES`; O(1)
+    per frame (a running byte total: at small frame sizes the cache holds thousands)."""
+    previous = _FRAMES.pop(key, None)
+    if previous is not None:
+        _CACHED_BYTES[0] -= previous.nbytes
     _FRAMES[key] = arr
-    total = sum(a.nbytes for a in _FRAMES.values())
-    while total > FRAME_CACHE_BYTES and len(_FRAMES) > 1:
+    _CACHED_BYTES[0] += arr.nbytes
+    while _CACHED_BYTES[0] > FRAME_CACHE_BYTES and len(_FRAMES) > 1:
         _, old = _FRAMES.popitem(last=False)
-        total -= old.nbytes
+        _CACHED_BYTES[0] -= old.nbytes
 
 
 @dataclass(frozen=True)
