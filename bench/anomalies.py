@@ -36,7 +36,7 @@ Then `leak_free_total` (the false-leak rate over both leak-free scenes together)
 
 Usage: `python bench/anomalies.py [--quick] [--building] [--frames 60,16] [--errors-frames 30]
 [--seed 1] [--cluster 4] [--leaks 3] [--out DIR]`. `--building`: the units analyse each building's
-coplanar adjacent polygons as one facade (`building_analysis`). `--quick`: the leak drive and the
+coplanar adjacent polygons as one facade (`AnomalyOptions.facade_grouping`). `--quick`: the leak drive and the
 leak-free drive with 40 frames (about 30 s of CPU); the default run (five cases: 60 drive frames
 0.3 s apart, 16 flight frames 0.5 s apart, the errors drive) takes about 2 minutes of CPU (the
 job runs its units in one process; the wall time grows with whatever else shares the machine).
@@ -54,7 +54,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -177,28 +177,6 @@ def recording_textures() -> Iterator[Coverage]:
         units.analyse_unit = original
 
 
-@contextmanager
-def building_analysis() -> Iterator[None]:
-    """Run the units' anomaly analysis per building (`anomalies.analyse_building`: coplanar
-    adjacent polygons as one facade) instead of per polygon: the call `units.analyse_unit`
-    will make once the integrator switches it (`--building`, a preview of that switch)."""
-    from workers.pipeline import units
-    from workers.pipeline.anomalies import analyse_building
-
-    original = units.analyse_unit
-
-    def analyse_unit(tex: Any, options: Any) -> Any:
-        if not options.enabled:
-            return [None] * len(tex.grids)
-        return analyse_building(tex.grids, tex.textures, options)
-
-    units.analyse_unit = analyse_unit
-    try:
-        yield
-    finally:
-        units.analyse_unit = original
-
-
 def speed(report: dict[str, Any]) -> dict[str, Any]:
     """Facade textures analysed per second per process: surfaces with texels over the units'
     `anomalies` time (None until the units time the analysis)."""
@@ -302,11 +280,11 @@ def run_case(
     case: AnomalyCase, root: Path, seed: int, cluster: int, building: bool = False
 ) -> dict[str, Any]:
     """Synthesize, run the job (refinement with the errors case only), evaluate: the case's block
-    (`building`: the analysis per building, `building_analysis`)."""
+    (`building`: coplanar adjacent polygons analysed as one facade, `AnomalyOptions.facade_grouping`)."""
     made, truth = make_case(case, root, seed, cluster)
-    # the recorder wraps whichever analysis the units call, so it enters last
-    with building_analysis() if building else nullcontext(), recording_textures() as cov:
-        run = run_product(made, root / case.name / "results", refine=case.errors)
+    grouping = {"unit": {"anomalies": {"facade_grouping": True}}} if building else None
+    with recording_textures() as cov:
+        run = run_product(made, root / case.name / "results", refine=case.errors, options=grouping)
     geo = run.out_dir / "anomalies.geojson"
     det = detections_from_geojson(json.loads(geo.read_text(encoding="utf-8"))) if geo.is_file() else []
     t0 = time.perf_counter()

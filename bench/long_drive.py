@@ -1,7 +1,7 @@
 """Memory and cost per frame of `citytherm run` against sequence length (issue 18, item 5).
 
 Generates a long synthetic drive at low resolution (default 96 × 80 px, the default camera's
-45° field of view) looping around a cluster of the real NRW LoD2 tile (`../shared/data/`,
+45° field of view) looping around a cluster of the real NRW LoD2 tile (`tests/data/`,
 default GNSS/INS errors), then runs `citytherm run` on it as a subprocess and samples, every
 `--sample-s` seconds, the resident set size of every process of the run (the CLI process, the
 forkserver and the pool workers: `psutil`). Prints JSON per run: frames, refinement, peak RSS of
@@ -47,7 +47,7 @@ from workers.pipeline.synth.render import default_camera
 from workers.pipeline.synth.scene import SynthResult
 
 REPO = Path(__file__).resolve().parents[1]
-NRW_TILE = REPO.parent / "shared" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
+NRW_TILE = REPO / "tests" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
 VENV_BIN = Path(sys.executable).parent
 MB = 1024.0**2
 

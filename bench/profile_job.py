@@ -1,6 +1,6 @@
 """Where `citytherm run` spends its time (issue 18, item 1): a py-spy profile per stage.
 
-Builds (or reuses) a synthetic drive along the real NRW LoD2 tile (`../shared/data/`, default
+Builds (or reuses) a synthetic drive along the real NRW LoD2 tile (`tests/data/`, default
 GNSS/INS errors, 640 × 512 px, `citytherm synth` defaults), runs `citytherm run` with refinement
 under `py-spy record --format raw --subprocesses` (pool workers included), and prints JSON: per
 stage (ingest, calibrate, orient, plan, units, finish, other = start-up and imports) the sampled
@@ -36,7 +36,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 REPO = Path(__file__).resolve().parents[1]
-NRW_TILE = REPO.parent / "shared" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
+NRW_TILE = REPO / "tests" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
 VENV_BIN = Path(sys.executable).parent
 
 #: `workers.job` stage functions, innermost match wins (`run_unit` may run under `finish`'s

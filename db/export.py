@@ -31,14 +31,13 @@ from sqlalchemy import Connection, Engine, text
 from db.appearance_rows import load_texture_params, surface_data_from_rows
 from db.citygml.writer import write_citygml
 from db.errors import CityDBError, NotFoundError
-from db.geomcodec import polygon_rings_from_wkb
 from db.model_load import assemble_buildings, building_rows, surface_polygons
+from db.result_load import anomaly_from_row, from_kelvin
 from db.results_folder.write import anomalies_document, anomaly_feature, facade_attributes, write_json
 from db.session import as_engine
 from db.srid import database_srid, from_database
 from workers.pipeline.geometry.citymodel import Appearance, Building, ParameterizedTexture
 from workers.pipeline.geometry.transform import CrsTransform, transform_building
-from workers.pipeline.results import Anomaly
 
 __all__ = ["ExportOptions", "ExportSummary", "export_citygml"]
 
@@ -371,20 +370,11 @@ def _facade_figures(conn: Connection, f: _Filter, roots: Sequence[int]) -> dict[
         ),
         {**f.params(), "roots": list(roots)},
     ).mappings():
-        typical = r["typical_k"]
-        if typical is not None and r["unit"] == "degC":
-            typical -= 273.15
-        fig = {"typical": typical, "spread": r["spread_k"], "hot_share": r["hot_share"],
-               "window_share": r["window_share"], "heat_loss_index": r["heat_loss_index"],
-               "windows": r["windows"], "leaks": r["leaks"]}  # fmt: skip
+        fig = {**r, "typical": from_kelvin(r["typical_k"], r["unit"]), "spread": r["spread_k"]}
         attrs = facade_attributes(fig, leaks.get(r["sid"], ()))
         if attrs is not None:
             out[r["gml_id"]] = attrs
     return out
-
-
-def _nan(v: float | None) -> float:
-    return float("nan") if v is None else float(v)
 
 
 def _write_anomalies(
@@ -395,38 +385,15 @@ def _write_anomalies(
     job was asked for. Returns their number."""
     rows = conn.execute(
         text(
-            "SELECT b.gml_id AS building, s.gml_id AS surface, ST_AsBinary(ta.outline) AS outline, "
-            "ta.centre, "
-            "ta.area_m2, ta.peak_delta_k, ta.mean_delta_k, ta.kind, ta.anomaly_id, ta.frames, "
-            "ta.best_resolution_m, ta.confidence FROM thermal_anomaly ta "
+            "SELECT b.gml_id AS building, s.gml_id AS surface, ST_AsBinary(ta.outline) AS outline_wkb, "
+            "ta.* FROM thermal_anomaly ta "
             "JOIN appearance a ON a.id = ta.appearance_id JOIN building b ON b.id = ta.building_id "
             "LEFT JOIN surface s ON s.id = ta.surface_id "
             f"WHERE ta.building_id = ANY(:roots) AND {f.appearance_sql()} ORDER BY b.ordinal, ta.id"
         ),
         {**f.params(), "roots": list(roots)},
     ).mappings()
-    features = []
-    for r in rows:
-        rings = polygon_rings_from_wkb(r["outline"]) if r["outline"] is not None else []
-        outline = back.points(rings[0]) if rings else np.zeros((0, 3))
-        features.append(
-            anomaly_feature(
-                Anomaly(
-                    building_id=r["building"],
-                    polygon_id=r["surface"],
-                    outline=outline,
-                    centre=np.asarray(r["centre"], dtype=np.float64),
-                    area_m2=r["area_m2"],
-                    peak_delta_k=r["peak_delta_k"],
-                    mean_delta_k=r["mean_delta_k"],
-                    kind=r["kind"],
-                    id=r["anomaly_id"] or "",
-                    frames=int(r["frames"] or 0),
-                    best_resolution_m=_nan(r["best_resolution_m"]),
-                    confidence=_nan(r["confidence"]),
-                )
-            )
-        )
+    features = [anomaly_feature(anomaly_from_row(r, r["building"], back)) for r in rows]
     if features or f.theme is not None or f.job_id is not None:
         write_json(path, anomalies_document(features, srs_name))
     return len(features)

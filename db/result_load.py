@@ -11,6 +11,8 @@ in-process run. Raises `NotFoundError` when nothing was stored for that job and 
 from __future__ import annotations
 
 import uuid
+from collections.abc import Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -24,6 +26,7 @@ from db.srid import database_srid, from_database
 from workers.pipeline.geometry.citymodel import Appearance
 from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.transform import CrsTransform
 from workers.pipeline.results import Anomaly, BuildingResult, FramePose, SurfaceStats, TextureTile
 
 __all__ = ["load_building_result"]
@@ -33,12 +36,34 @@ def _nan(v: float | None) -> float:
     return float("nan") if v is None else float(v)
 
 
-def _from_kelvin(v: float | None, unit: str | None) -> float:
-    """A stored kelvin temperature back in the radiometry `unit` (NaN for `counts`, inverse of
-    `store.to_kelvin`)."""
+def from_kelvin(v: float | None, unit: str | None) -> float:
+    """A stored kelvin temperature back in the radiometry `unit` (NaN when not stored: `counts`;
+    inverse of `store.to_kelvin`)."""
     if v is None:
         return float("nan")
     return float(v) - 273.15 if unit == "degC" else float(v)
+
+
+def anomaly_from_row(r: Mapping[str, Any], building_id: str, back: CrsTransform) -> Anomaly:
+    """An `Anomaly` from a `thermal_anomaly` row (`r`: its columns, plus `surface` = the surface's
+    gml id and `outline_wkb` = `ST_AsBinary(outline)`); `back` maps the outline from the database
+    SRID to the model CRS."""
+    wkb = r["outline_wkb"]
+    outline = back.points(polygon_rings_from_wkb(wkb)[0]) if wkb is not None else np.zeros((0, 3))
+    return Anomaly(
+        building_id=building_id,
+        polygon_id=r["surface"],
+        outline=outline,
+        centre=np.array(r["centre"], dtype=np.float64),
+        area_m2=r["area_m2"],
+        peak_delta_k=r["peak_delta_k"],
+        mean_delta_k=r["mean_delta_k"],
+        kind=r["kind"],
+        id=r["anomaly_id"] or "",
+        frames=int(r["frames"] or 0),
+        best_resolution_m=_nan(r["best_resolution_m"]),
+        confidence=_nan(r["confidence"]),
+    )
 
 
 def load_building_result(
@@ -95,7 +120,7 @@ def load_building_result(
             best_resolution_m=_nan(r["best_resolution_m"]),
             mean_observations=_nan(r["mean_observations"]),
             reason=r["reason"] or "",
-            typical=_from_kelvin(r["typical_k"], r["unit"]),
+            typical=from_kelvin(r["typical_k"], r["unit"]),
             spread=_nan(r["spread_k"]),
             hot_share=_nan(r["hot_share"]),
             window_share=_nan(r["window_share"]),
@@ -131,33 +156,15 @@ def load_building_result(
     )
     srs = conn.execute(text("SELECT srs_name FROM city_model WHERE id = :m"), {"m": model_id}).scalar_one()
     back = from_database(srs, database_srid(conn))  # outlines are stored in the database SRID
-    anomalies = []
-    for r in conn.execute(
+    rows = conn.execute(
         text(
             "SELECT s.gml_id AS surface, ST_AsBinary(ta.outline) AS outline_wkb, ta.* "
             "FROM thermal_anomaly ta "
             "LEFT JOIN surface s ON s.id = ta.surface_id WHERE ta.appearance_id = :a ORDER BY ta.id"
         ),
         {"a": aid},
-    ).mappings():
-        wkb = r["outline_wkb"]
-        outline = back.points(polygon_rings_from_wkb(wkb)[0]) if wkb is not None else np.zeros((0, 3))
-        anomalies.append(
-            Anomaly(
-                building_id=building_gml_id,
-                polygon_id=r["surface"],
-                outline=outline,
-                centre=np.array(r["centre"], dtype=np.float64),
-                area_m2=r["area_m2"],
-                peak_delta_k=r["peak_delta_k"],
-                mean_delta_k=r["mean_delta_k"],
-                kind=r["kind"],
-                id=r["anomaly_id"] or "",
-                frames=int(r["frames"] or 0),
-                best_resolution_m=_nan(r["best_resolution_m"]),
-                confidence=_nan(r["confidence"]),
-            )
-        )
+    ).mappings()
+    anomalies = [anomaly_from_row(r, building_gml_id, back) for r in rows]
     timings = conn.execute(
         text("SELECT timings_s FROM job_unit WHERE job_id = :j AND building_id = :b"), {"j": jid, "b": bid}
     ).scalar()

@@ -19,16 +19,16 @@ calibrate + orient as one task per sequence, one task per building unit, then fi
   unit that raises is reported, not fatal.
 - `finish(out_dir, ...)`: the results folder (`db.results_folder.write`).
 
-Options: `RunOptions`, one frozen dataclass that round-trips through JSON (`to_dict` /
-`from_dict`) so that the service stores it with the job. The texel resolution, theme and
-refinement live in `RunOptions.unit` only.
+Options: `RunOptions` (`workers.run_options`, imported here), one frozen dataclass that
+round-trips through JSON (`to_dict` / `from_dict`) so that the service stores it with the job. The
+texel resolution, theme and refinement live in `RunOptions.unit` only.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -42,8 +42,7 @@ from workers.pipeline.geometry.georef import prior_poses
 from workers.pipeline.geometry.manifest import Accuracy, FrameSource, Mounting, Radiometry, SequenceManifest
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
-from workers.pipeline.options import options_from_dict, options_to_dict
-from workers.pipeline.orientation.building import CoregisterOptions, calibrated_options
+from workers.pipeline.orientation.building import calibrated_options
 from workers.pipeline.orientation.calibration import (
     SequenceCalibration,
     apply_calibration,
@@ -52,10 +51,11 @@ from workers.pipeline.orientation.calibration import (
 )
 from workers.pipeline.orientation.mounting import calibration_report, mounting_document
 from workers.pipeline.orientation.sequence import SEQUENCE_PLATFORMS, SequenceOrientation, orient_sequence
-from workers.pipeline.plan import PlanOptions, near_buildings, plan_units, resolution_warning
+from workers.pipeline.plan import near_buildings, plan_units, resolution_warning
 from workers.pipeline.results import BuildingResult, output_radiometry
 from workers.pipeline.texture.texel import TexelOptions
 from workers.pipeline.units import BuildingUnit, Refiner, UnitOptions, run_building_unit
+from workers.run_options import RunOptions
 
 #: progress callback: (stage, done, total); called with done == 0 when a stage starts.
 Progress = Callable[[str, int, int], None]
@@ -64,87 +64,6 @@ STAGES = ("ingest", "calibrate", "orient", "plan", "units", "write")
 
 class RunError(ValueError):
     """A job that cannot run as asked (names the file or option)."""
-
-
-@dataclass(frozen=True)
-class RunOptions:
-    """Options of one texturing job (`citytherm run`, a service job).
-
-    Attributes:
-        unit: the building units' options: texel resolution (`unit.texel.resolution_px_per_m`),
-            theme, refinement (`unit.refine`, None: keep the GNSS/INS poses) and the texture
-            stages. The one home of those values: read them through the properties below.
-        plan: planning options.
-        calibrate: with refinement, calibrate the sequence (mounting, GNSS offset, time delay)
-            before the units, which then refine from the calibrated priors.
-        orient: with refinement, orient close-range sequences (drives, terrestrial) in blocks
-            (feature tracks, bundle adjustment with the model) before the units, from the
-            calibrated priors or the manifest's; the units then refine from those poses.
-        buildings: ids of the top-level buildings to texture (None: all the sequence sees).
-        workers: processes for the building units in one process (`citytherm run`; 1: in this
-            process).
-        display: also write the 8-bit colour-mapped `<theme>-display` appearance.
-        split_half: after the units, texture every building's even and odd frames separately
-            and report how the two halves agree (`workers.split_half`; `report.json`
-            `split_half`); the job's outputs stay the same. `citytherm run` only.
-    """
-
-    unit: UnitOptions = field(default_factory=UnitOptions)
-    plan: PlanOptions = field(default_factory=PlanOptions)
-    calibrate: bool = True
-    orient: bool = True
-    buildings: tuple[str, ...] | None = None
-    workers: int = 1
-    display: bool = True
-    split_half: bool = False
-
-    @classmethod
-    def build(
-        cls,
-        *,
-        resolution_px_per_m: float | None = None,
-        theme: str | None = None,
-        refine: bool | None = None,
-        anomalies: bool | None = None,
-        **fields: Any,
-    ) -> RunOptions:
-        """Options from the job's few headline values (as the command line gives them); the
-        others keep their defaults or come in `fields`. `refine=True` uses the default
-        refinement options, False none; `anomalies=False` skips the thermal analysis."""
-        unit: UnitOptions = fields.pop("unit", UnitOptions())
-        if anomalies is not None:
-            unit = replace(unit, anomalies=replace(unit.anomalies, enabled=bool(anomalies)))
-        if resolution_px_per_m is not None:
-            unit = replace(unit, texel=replace(unit.texel, resolution_px_per_m=float(resolution_px_per_m)))
-        if theme is not None:
-            unit = replace(unit, theme=theme)
-        if refine is not None:
-            unit = replace(unit, refine=(unit.refine or CoregisterOptions()) if refine else None)
-        return cls(unit=unit, **fields)
-
-    @property
-    def refine(self) -> bool:
-        """True when the units refine their poses (and the sequence stages may run)."""
-        return self.unit.refine is not None
-
-    @property
-    def theme(self) -> str:
-        """Appearance theme of the textures."""
-        return self.unit.theme
-
-    @property
-    def resolution_px_per_m(self) -> float:
-        """Texels per metre on every surface."""
-        return self.unit.texel.resolution_px_per_m
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON form (`workers.pipeline.options.options_to_dict`)."""
-        return options_to_dict(self)
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> RunOptions:
-        """Rebuild from `to_dict`'s form; unknown keys or wrong types raise `OptionsError`."""
-        return options_from_dict(cls, data)
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,6 +21,9 @@ from workers.pipeline.anomalies.leaks import fit_blob
 from workers.pipeline.texture.fused import SurfaceTexture
 from workers.pipeline.texture.texel import TexelOptions, texel_grid
 
+#: the per-facade analysis (off by default in the product)
+GROUPED = AnomalyOptions(facade_grouping=True)
+
 OPTS = TexelOptions(resolution_px_per_m=10.0, follow_frames=False)
 
 
@@ -103,7 +106,7 @@ def test_analyse_building_finds_a_leak_on_a_polygon_edge_once():
     alone = [a for g, t in zip(strips, parts, strict=True) for a in analyse_surface(g, t).of_kind("leak")]
     near = [a for a in alone if abs(a.centre[0] - leak.s) < 0.5 and abs(a.centre[2] - leak.h) < 0.5]
     assert not near or all(abs(a.peak_delta_k - leak.peak) > 0.3 for a in near)
-    res = analyse_building(strips, parts)
+    res = analyse_building(strips, parts, GROUPED)
     assert [r.polygon_id for r in res] == ["B-w-0", "B-w-1", "B-w-2"]
     leaks = [(r.polygon_id, a) for r in res for a in r.of_kind("leak")]
     assert len(leaks) == 1
@@ -159,19 +162,19 @@ def test_disabled_or_unobserved_facade_has_no_figures():
     whole_grid = wall_grid()
     strips = split_wall((4.0, 8.0))
     parts = [part_texture(wall_texture(whole_grid, seed=0), whole_grid, g) for g in strips]
-    for r in analyse_building(strips, parts, AnomalyOptions(enabled=False)):
+    for r in analyse_building(strips, parts, AnomalyOptions(enabled=False, facade_grouping=True)):
         assert not r.anomalies and math.isnan(r.typical) and math.isnan(r.hot_share) and not r.labels.any()
     empty = [SurfaceTexture.empty(g.shape) for g in strips]
-    for r in analyse_building(strips, empty):
+    for r in analyse_building(strips, empty, GROUPED):
         assert not r.anomalies and math.isnan(r.window_share) and math.isnan(r.heat_loss_index)
     with pytest.raises(ValueError, match="textures"):
-        analyse_building(strips, parts[:2])
+        analyse_building(strips, parts[:2], GROUPED)
 
 
 def test_single_polygon_is_analyse_surface():
     g = wall_grid()
     t = wall_texture(g, seed=1)
-    one = analyse_building([g], [t])[0]
+    one = analyse_building([g], [t], GROUPED)[0]
     ref = analyse_surface(g, t)
     assert [a.id for a in one.anomalies] == [a.id for a in ref.anomalies] and len(ref.of_kind("leak")) == len(
         LEAKS

@@ -24,7 +24,7 @@ from typing import Protocol
 
 import numpy as np
 
-from workers.pipeline.anomalies import AnomalyOptions, SurfaceAnalysis, analyse_surface
+from workers.pipeline.anomalies import AnomalyOptions, SurfaceAnalysis, analyse_building
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.citymodel import Building, Polygon
 from workers.pipeline.geometry.manifest import Accuracy, FrameSource, Radiometry
@@ -261,10 +261,11 @@ def _figures(a: SurfaceAnalysis) -> dict[str, float | int]:
 
 
 def analyse_unit(tex: UnitTextures, options: AnomalyOptions) -> list[SurfaceAnalysis | None]:
-    """The anomaly analysis of every fused surface texture of a unit (None each when disabled)."""
+    """The anomaly analysis of every fused surface texture of a unit (`anomalies.analyse_building`:
+    per polygon, or per facade with `options.facade_grouping`; None each when disabled)."""
     if not options.enabled:
         return [None] * len(tex.grids)
-    return [analyse_surface(g, t, options) for g, t in zip(tex.grids, tex.textures, strict=True)]
+    return list(analyse_building(tex.grids, tex.textures, options))
 
 
 @dataclass(eq=False)
