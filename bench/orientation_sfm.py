@@ -18,7 +18,7 @@ smoothed priors) registered frames, points, mean reprojection error before and a
 adjustment (px), CPU seconds; per placement the share of frames below 1 px (wall points every
 metre against the true poses), median and 90th percentile.
 
-Needs the optional dependency `pycolmap` (`pip install -e .[sfm]`). Usage:
+Usage:
 `python bench/orientation_sfm.py [--frames 40] [--seed 3]`.
 """
 
