@@ -11,7 +11,10 @@ runs each phase in its own subprocess so that peak RSS figures are the phase's o
   start-up (`*_per_s`) and over the import call alone (`import_call`), surfaces/s, MB/s; peak RSS
   and CPU seconds of every process: the importer, its reader process and the PostgreSQL backend
   (its RSS includes the shared buffers it touched); the machine's load average, since it is
-  shared (wall-clock figures drop when other processes compete for the cores);
+  shared (wall-clock figures drop when other processes compete for the cores); and from the CPU
+  seconds of those processes (the importer's and the reader's with their start-up) the wall time
+  and buildings/s they allow on 2 idle cores (`cpu_budget`); and the start-up of the `citytherm`
+  command line, which `citytherm import` pays on top of the phase's own (`cli_startup`);
 - export: `export_citygml` of the whole model (streamed, CityGML 2.0 writer): buildings/s, MB/s
   written, peak RSS.
 
@@ -19,13 +22,16 @@ Bars (issue 13): import >= 2,000 buildings/s wall time including start-up, peak 
 importer and of its reader process < 300 MB each.
 
 Usage: `python bench/db_io.py [--copies 87] [--file PATH] [--checks fast|full|none] [--db NAME]
-[--keep]` prints JSON (`--db`: the bench database's name, default `citytherm_bench`; it is dropped
-and created afresh, so give one of your own on a shared server).
+[--keep] [--one-reader] [--check-links]` (the last two: one reader process instead of two, and
+the foreign keys checked row by row, as imports were before; for comparison) prints JSON
+(`--db`: the bench database's name, default `citytherm_bench`; it is dropped and created afresh,
+so give one of your own on a shared server).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -80,13 +86,31 @@ def _proc_figures(pid: int) -> dict:
             if line.startswith("VmHWM:"):
                 out["peak_rss_mb"] = round(int(line.split()[1]) / 1024.0, 1)
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        out["cpu_s"] = round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 1)
+        out["cpu_s"] = round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 2)
     except (OSError, IndexError, ValueError):
         pass
     return out
 
 
-def phase_import(url: str, path: Path, checks: str) -> dict:
+def cpu_budget(cpu_s: dict[str, float], buildings: int, parts: int, cores: int = 2) -> dict:
+    """What the CPU seconds of the import's processes allow on `cores` idle cores: the wall time
+    cannot be below the total CPU time shared out over the cores, nor below the CPU time of the
+    busiest process (a process runs on one core at a time). On a shared machine the measured
+    wall time is longer; this bound is what the same work takes without the others' load."""
+    total = sum(cpu_s.values())
+    wall = max(total / cores, max(cpu_s.values()))
+    return {
+        "cpu_s_total": round(total, 2),
+        "cores": cores,
+        "wall_s_lower_bound": round(wall, 2),
+        "buildings_per_s_upper_bound": round(buildings / wall, 1) if wall > 0 else None,
+        "parts_per_s_upper_bound": round(parts / wall, 1) if wall > 0 else None,
+    }
+
+
+def phase_import(
+    url: str, path: Path, checks: str, one_reader: bool = False, check_links: bool = False
+) -> dict:
     import resource
 
     from sqlalchemy import create_engine, text
@@ -99,7 +123,10 @@ def phase_import(url: str, path: Path, checks: str) -> dict:
     engine = create_engine(sqlalchemy_url(url), pool_pre_ping=True, connect_args={"application_name": app})
     c0 = time.process_time()
     t0 = time.perf_counter()
-    s = import_citygml(engine, path, name="bench", options=ImportOptions(checks=checks))
+    opts = ImportOptions(checks=checks, own_links_unchecked=not check_links)
+    if one_reader:
+        opts = dataclasses.replace(opts, split_above_bytes=None)
+    s = import_citygml(engine, path, name="bench", options=opts)
     dt = time.perf_counter() - t0
     cpu_importer = time.process_time() - c0
     reader = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -111,6 +138,16 @@ def phase_import(url: str, path: Path, checks: str) -> dict:
         backends = [_proc_figures(pid) for pid in pids]
         backends.append(_proc_figures(c.execute(text("SELECT pg_backend_pid()")).scalar_one()))
     engine.dispose()
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    children = reader.ru_utime + reader.ru_stime
+    cpu = {
+        "importer": me.ru_utime + me.ru_stime,  # with the interpreter's start-up and imports
+        # each reader process with its start-up, as it reported it at its end
+        **{f"reader_{k + 1}": c for k, c in enumerate(s.reader_cpu_s)},
+        # readers that ended without reporting (a split given up): all children minus the above
+        "readers_unreported": max(0.0, children - sum(s.reader_cpu_s)),
+        "postgres": sum(b["cpu_s"] or 0.0 for b in backends),
+    }
     return {
         "buildings": s.buildings,
         "parts": s.parts,
@@ -123,15 +160,23 @@ def phase_import(url: str, path: Path, checks: str) -> dict:
         "surfaces_per_s": round(s.surfaces / dt, 1),
         "mb_per_s": round(path.stat().st_size / 1e6 / dt, 2),
         "processes": {
-            "importer": {"peak_rss_mb": round(_peak_rss_mb(), 1), "cpu_s": round(cpu_importer, 1)},
+            "importer": {
+                "peak_rss_mb": round(_peak_rss_mb(), 1),
+                "cpu_s": round(cpu["importer"], 2),
+                "cpu_s_import_call": round(cpu_importer, 2),
+            },
             "reader": {
                 "peak_rss_mb": None if s.reader_peak_rss_mb is None else round(s.reader_peak_rss_mb, 1),
-                "cpu_s": round(reader.ru_utime + reader.ru_stime, 1),
+                "cpu_s": round(children, 2),
+                "cpu_s_per_process": list(s.reader_cpu_s),
             },
             "postgres_backends": backends,
         },
+        "cpu_budget": cpu_budget(cpu, s.buildings, s.parts),
         "timings_s": s.timings_s,
         "checks": checks,
+        "reader_processes": len(s.reader_cpu_s),
+        "own_links_unchecked": opts.own_links_unchecked,
         "load_avg_1min_after": round(os.getloadavg()[0], 2),
     }
 
@@ -160,6 +205,20 @@ def phase_export(url: str, out: Path) -> dict:
     }
 
 
+def cli_startup() -> dict:
+    """Wall and CPU seconds of starting the `citytherm` command line (`from services.cli import
+    main`: what `citytherm import` pays before it reads a byte, in a fresh interpreter)."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "from services.cli import main"], check=True, cwd=str(REPO))
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+    return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 2)}
+
+
 def _run_phase(*args: str) -> dict:
     """Run a phase in a fresh interpreter; its figures plus the wall time of the whole subprocess
     (start-up and imports included)."""
@@ -176,6 +235,8 @@ def main() -> None:
     ap.add_argument("--copies", type=int, default=87, help="copies of the NRW tile (87 -> ~14,000 buildings)")
     ap.add_argument("--file", type=Path, help="use this CityGML file instead of building one")
     ap.add_argument("--checks", default="fast", choices=("fast", "full", "none"))
+    ap.add_argument("--one-reader", action="store_true", help="one reader process, not one per half")
+    ap.add_argument("--check-links", action="store_true", help="check foreign keys row by row")
     ap.add_argument("--keep", action="store_true", help="keep the bench database and files")
     ap.add_argument("--db", default=BENCH_DB, help="bench database name (dropped and created afresh)")
     ap.add_argument("--phase", choices=("import", "export"), help=argparse.SUPPRESS)
@@ -183,7 +244,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.phase == "import":
-        print(json.dumps(phase_import(args.url, args.file, args.checks)))
+        print(json.dumps(phase_import(args.url, args.file, args.checks, args.one_reader, args.check_links)))
         return
     if args.phase == "export":
         print(json.dumps(phase_export(args.url, args.out)))
@@ -200,8 +261,14 @@ def main() -> None:
     url = _fresh_database(PG, args.db)
     try:
         load0 = round(os.getloadavg()[0], 2)
-        imp = _run_phase("--phase", "import", "--url", url, "--file", str(big), "--checks", args.checks)
+        flags = [
+            f for f, on in (("--one-reader", args.one_reader), ("--check-links", args.check_links)) if on
+        ]
+        imp = _run_phase(
+            "--phase", "import", "--url", url, "--file", str(big), "--checks", args.checks, *flags
+        )
         imp["load_avg_1min_before"] = load0
+        imp["cli_startup"] = cli_startup()
         wall = imp["wall_s_with_startup"]
         imp["buildings_per_s"] = round(imp["buildings"] / wall, 1)
         imp["parts_per_s"] = round(imp["parts"] / wall, 1)

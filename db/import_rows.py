@@ -18,7 +18,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from operator import attrgetter
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,7 +26,9 @@ from db.geomcodec import EncodedPolygons, encode_envelope, encode_footprints, en
 from db.ops import copy_field, pg_bool_array, pg_text_array
 from db.surface_checks import jsonable, surface_checks
 from workers.pipeline.geometry.citymodel import Appearance, Building, Polygon
-from workers.pipeline.geometry.transform import CrsTransform, transform_building
+
+if TYPE_CHECKING:  # imported where used: the reader process of a model in the database SRID needs no PROJ
+    from workers.pipeline.geometry.transform import CrsTransform
 
 __all__ = ["BUILDING_TAIL", "SURFACE_TAIL", "BatchLines", "batch_lines"]
 
@@ -278,6 +280,8 @@ def batch_lines(
     transforms the buildings from the model's CRS into the database SRID `srid` first (the
     buildings keep their `srs_name` as read)."""
     if to_db is not None and not to_db.identity:
+        from workers.pipeline.geometry.transform import transform_building
+
         tops = [transform_building(t, to_db, set_srs=False) for t in tops]
     flat, parent, root, sub = _flatten(tops)
     polys: list[Polygon] = [p for b in flat for p in b.polygons]

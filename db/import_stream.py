@@ -15,26 +15,40 @@ it, and stops at the first write into a pipe nobody reads any more. It ignores S
 and SIGHUP (a Ctrl-C reaches the whole process group, systemd signals the whole control group:
 the importer decides, and stops the reader with SIGKILL). Use the stream as a
 context manager (or call `close()`): leaving it stops the reader at once. Errors of the reader
-are raised here (`CityGMLError` for a bad file); `peak_rss_mb` of the reader process is available
-after the stream ends.
+are raised here (`CityGMLError` for a bad file); `peak_rss_mb` of the reader process (the largest
+of them) is available after the stream ends.
+
+With `split_above_bytes` a file at least that large is read by two reader processes at once, each
+parsing one half (`db.import_split`: cut at a `cityObjectMember`, each half a well-formed document
+with the file's header). The first sends through its pipe; the second writes into an unlinked
+temporary file, read once the first half is done, so the batches keep the file's order. When a
+half is not independent of the other (comments, appearances, ...: the first reader says so before
+it sends anything) the file is read by one reader; when the second half has a top-level building
+without `gml:id` (its generated id counts the buildings before it), or the second reader could not
+finish its temporary file, the buildings after the first half are read from the whole file. Both
+readers die with the importer as the single one does.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import pickle
 import signal
 import struct
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO
 
 from db.citygml import reader as citygml_reader
 from db.citygml.names import CityGMLError
+from db.import_split import Spliced, SplitPlan, first_half, part_is_plain, plan_split, second_half
 from workers.pipeline.geometry.citymodel import Building
 
 __all__ = ["BatchStream"]
@@ -46,26 +60,53 @@ _CHILD = (
     "from db.import_stream import _child_main; _child_main(cfg)"
 )
 _PR_SET_PDEATHSIG = 1
+#: exit code of a second-half reader that met a top-level building without `gml:id`
+_NEEDS_WHOLE_FILE = 3
 
 
-def _events(path: Path, huge_tree: bool) -> Iterator[tuple[str, Any]]:
+class _GeneratedIdError(Exception):
+    """A top-level building without `gml:id` in the second half of a split file."""
+
+
+@dataclasses.dataclass
+class _Part:
+    """What one reader process reads: the whole file (`pieces` None) or a spliced half; `skip`
+    top-level buildings left out first; `strict_ids`: stop at a building whose id is generated."""
+
+    pieces: list[Any] | None = None
+    skip: int = 0
+    strict_ids: bool = False
+    count: int = 0  # top-level buildings sent
+
+
+def _events(path: Path, huge_tree: bool, part: _Part | None = None) -> Iterator[tuple[str, Any]]:
     """("building", Building) in document order, and ("appearance", Appearance) for CityModel-level
-    appearances after the buildings (when the reader's event stream reports them)."""
-    stream = getattr(citygml_reader, "_Stream", None)
-    if stream is None:  # pragma: no cover - reader without its event stream
-        for b in citygml_reader.iter_buildings(path, huge_tree=huge_tree):
-            yield "building", b
-        return
-    for kind, obj in stream(path, huge_tree).events():
-        if kind in ("building", "appearance"):
+    appearances after the buildings."""
+    part = part or _Part()
+    source = None if part.pieces is None else partial(Spliced, path, part.pieces)
+    seen = 0
+    for kind, obj in citygml_reader._Stream(path, huge_tree, source=source).events():
+        if kind == "building":
+            seen += 1
+            if seen <= part.skip:
+                continue
+            if part.strict_ids and obj.generated_id:
+                raise _GeneratedIdError(obj.id)
+            part.count += 1
+            yield kind, obj
+        elif kind == "appearance":
             yield kind, obj
 
 
 def _batches(
-    path: Path, huge_tree: bool, batch_size: int, transform: Callable[[list[Building]], Any]
+    path: Path,
+    huge_tree: bool,
+    batch_size: int,
+    transform: Callable[[list[Building]], Any],
+    part: _Part | None = None,
 ) -> Iterator[tuple[str, Any]]:
     pending: list[Building] = []
-    for kind, obj in _events(path, huge_tree):
+    for kind, obj in _events(path, huge_tree, part):
         if kind == "appearance":
             yield kind, obj
             continue
@@ -88,6 +129,12 @@ def _peak_rss_mb() -> float:
     return float("nan")
 
 
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process so far, its start-up included."""
+    t = os.times()
+    return t.user + t.system
+
+
 def _die_with_parent(parent_pid: int) -> None:
     """SIGKILL for this process when its parent dies (Linux); exit now if it is gone already."""
     if sys.platform.startswith("linux"):
@@ -106,21 +153,46 @@ def _send(out: BinaryIO, item: tuple[str, Any]) -> None:
     out.flush()
 
 
+def _child_part(path: Path, cfg: dict[str, Any]) -> _Part | None:
+    """The part this reader reads; None when its half of a split file is not independent."""
+    half = cfg.get("half")
+    if half is None:
+        return _Part(skip=cfg.get("skip", 0))
+    plan = SplitPlan(**cfg["plan"])
+    start, end = (plan.header_end, plan.split) if half == 1 else (plan.split, plan.size)
+    if not part_is_plain(path, start, end):
+        return None
+    pieces = first_half(plan) if half == 1 else second_half(path, plan)
+    return _Part(pieces=pieces, strict_ids=half == 2)
+
+
 def _child_main(cfg: dict[str, Any]) -> None:
-    """Reader process: every batch, then ("done", peak RSS) or ("error", (kind, message, is_citygml))."""
+    """Reader process: every batch, then ("done", (peak RSS, top-level buildings sent, CPU s)) or
+    ("error", (kind, message, is_citygml)); a split file's half that is not independent:
+    ("unsplit", None) first (first half) or exit code `_NEEDS_WHOLE_FILE` (second half)."""
     _die_with_parent(cfg["parent_pid"])
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
     # frames go to a private copy of stdout; stray prints of libraries go to stderr instead
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
+    path = Path(cfg["path"])
     try:
         transform = pickle.loads(cfg["transform"])
-        for item in _batches(Path(cfg["path"]), cfg["huge_tree"], cfg["batch_size"], transform):
+        part = _child_part(path, cfg)
+        if part is None:
+            if cfg["half"] == 2:
+                os._exit(_NEEDS_WHOLE_FILE)
+            _send(out, ("unsplit", None))
+            os._exit(0)
+        for item in _batches(path, cfg["huge_tree"], cfg["batch_size"], transform, part):
             _send(out, item)
-        _send(out, ("done", _peak_rss_mb()))
+        _send(out, ("done", (_peak_rss_mb(), part.count, _cpu_s())))
     except (BrokenPipeError, KeyboardInterrupt):  # the importer is gone or stopped us
         os._exit(1)
+    except _GeneratedIdError:
+        out.flush()
+        os._exit(_NEEDS_WHOLE_FILE)
     except BaseException as exc:
         with contextlib.suppress(BrokenPipeError):
             _send(out, ("error", (type(exc).__name__, str(exc), isinstance(exc, CityGMLError))))
@@ -149,40 +221,70 @@ class BatchStream:
         transform: Callable[[list[Building]], Any] = list,
         huge_tree: bool = False,
         parallel: bool = True,
+        split_above_bytes: int | None = None,
     ) -> None:
         self.path = path
         self.batch_size = batch_size
         self.transform = transform
         self.huge_tree = huge_tree
         self.parallel = parallel and bool(sys.executable)  # an embedded interpreter cannot start one
+        self.split_above_bytes = split_above_bytes
         self.peak_rss_mb: float | None = None
-        self._proc: subprocess.Popen[bytes] | None = None
+        #: CPU seconds of each reader process that ended normally, start-up included
+        self.reader_cpu_s: list[float] = []
+        #: how the file was read: "one" reader, "split" in two, or split "then whole" file
+        self.mode: str | None = None
+        self._procs: list[subprocess.Popen[bytes]] = []
+        self._spill: IO[bytes] | None = None
+        self._plan: SplitPlan | None = None
 
     @property
     def reader_pid(self) -> int | None:
-        """Process id of the reader process (None when reading in this process)."""
-        return None if self._proc is None else self._proc.pid
+        """Process id of the (first) reader process (None when reading in this process)."""
+        return self._procs[0].pid if self._procs else None
+
+    @property
+    def reader_pids(self) -> list[int]:
+        """Process ids of the reader processes running or not yet waited for."""
+        return [p.pid for p in self._procs]
+
+    def _spawn(self, stdout: int | IO[bytes], **part: Any) -> subprocess.Popen[bytes]:
+        cfg = {
+            "sys_path": [p for p in sys.path if p],
+            "parent_pid": os.getpid(),
+            "path": str(self.path),
+            "huge_tree": self.huge_tree,
+            "batch_size": self.batch_size,
+            "transform": pickle.dumps(self.transform),
+            **part,
+        }
+        proc = subprocess.Popen(
+            [sys.executable, "-c", _CHILD], stdin=subprocess.PIPE, stdout=stdout, close_fds=True
+        )
+        self._procs.append(proc)
+        assert proc.stdin is not None
+        try:
+            proc.stdin.write(pickle.dumps(cfg))
+            proc.stdin.close()
+        except BrokenPipeError:  # it died at once: reported by the first read
+            pass
+        return proc
 
     def start(self) -> BatchStream:
-        """Start the reader process now (it then parses while the caller prepares the database)."""
-        if self.parallel and self._proc is None:
-            cfg = {
-                "sys_path": [p for p in sys.path if p],
-                "parent_pid": os.getpid(),
-                "path": str(self.path),
-                "huge_tree": self.huge_tree,
-                "batch_size": self.batch_size,
-                "transform": pickle.dumps(self.transform),
-            }
-            self._proc = subprocess.Popen(
-                [sys.executable, "-c", _CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE, close_fds=True
-            )
-            assert self._proc.stdin is not None
-            try:
-                self._proc.stdin.write(pickle.dumps(cfg))
-                self._proc.stdin.close()
-            except BrokenPipeError:  # it died at once: reported by the first read
-                pass
+        """Start the reader process(es) now (they then parse while the caller prepares the database)."""
+        if not self.parallel or self._procs:
+            return self
+        if self.split_above_bytes is not None:
+            self._plan = plan_split(self.path, self.split_above_bytes)
+        if self._plan is None:
+            self.mode = "one"
+            self._spawn(subprocess.PIPE)
+            return self
+        self.mode = "split"
+        plan = dataclasses.asdict(self._plan)
+        self._spawn(subprocess.PIPE, half=1, plan=plan)
+        self._spill = tempfile.TemporaryFile(prefix="citytherm-import-")  # noqa: SIM115 - closed by close()
+        self._spawn(self._spill, half=2, plan=plan)
         return self
 
     def __enter__(self) -> BatchStream:
@@ -194,41 +296,81 @@ class BatchStream:
         self.close()
 
     def close(self) -> None:
-        """Stop the reader process (if it still runs) and release its pipe."""
-        proc, self._proc = self._proc, None
-        if proc is None:
-            return
-        if proc.poll() is None:
-            proc.kill()  # it holds nothing worth a graceful end: a file it reads, a pipe
+        """Stop the reader processes (those still running) and release their pipes and files."""
+        procs, self._procs = self._procs, []
+        spill, self._spill = self._spill, None
         try:
-            proc.wait(timeout=10)
+            for proc in procs:
+                if proc.poll() is None:
+                    proc.kill()  # it holds nothing worth a graceful end: a file it reads, a pipe
+            for proc in procs:
+                try:
+                    proc.wait(timeout=10)
+                finally:
+                    if proc.stdout is not None:
+                        proc.stdout.close()
         finally:
-            if proc.stdout is not None:
-                proc.stdout.close()
+            if spill is not None:
+                spill.close()
+
+    def _frames(self, f: BinaryIO, proc: subprocess.Popen[bytes]) -> Iterator[tuple[str, Any]]:
+        """The frames of one reader up to its end; returns ("done", (rss, count)) or ("unsplit", None)."""
+        while True:
+            head = _read_exactly(f, _LEN.size)
+            body = None if head is None else _read_exactly(f, _LEN.unpack(head)[0])
+            if body is None:
+                code = proc.wait(timeout=10)
+                raise CityGMLError(f"reader process died (exit code {code})", path=self.path)
+            kind, obj = pickle.loads(body)
+            if kind in ("done", "unsplit"):
+                if kind == "done":
+                    rss = obj[0]
+                    self.peak_rss_mb = rss if self.peak_rss_mb is None else max(self.peak_rss_mb, rss)
+                    self.reader_cpu_s.append(obj[2])
+                return kind, obj
+            if kind == "error":
+                name, message, is_citygml = obj
+                if is_citygml:
+                    raise CityGMLError(message)
+                raise RuntimeError(f"reading {self.path}: {name}: {message}")
+            yield kind, obj
+
+    def _split_batches(self) -> Iterator[tuple[str, Any]]:
+        """The batches of a split file, in the file's order (module docstring)."""
+        first, second = self._procs
+        assert first.stdout is not None and self._spill is not None
+        kind, info = yield from self._frames(first.stdout, first)
+        if kind == "unsplit":  # the first half is not independent: one reader for the whole file
+            self.close()
+            self.mode = "one"
+            proc = self._spawn(subprocess.PIPE)
+            assert proc.stdout is not None
+            yield from self._frames(proc.stdout, proc)
+            return
+        code = second.wait()  # the first half is written: the second reader is done or nearly
+        if code != 0:  # _NEEDS_WHOLE_FILE, or it could not finish its file (e.g. a full disk)
+            self.mode = "then whole"
+            proc = self._spawn(subprocess.PIPE, skip=info[1])
+            assert proc.stdout is not None
+            yield from self._frames(proc.stdout, proc)
+            return
+        self._spill.seek(0)
+        kind, _ = yield from self._frames(self._spill, second)  # type: ignore[arg-type]
+        if kind != "done":
+            raise CityGMLError(f"second reader ended with {kind!r} (exit code {code})", path=self.path)
 
     def __iter__(self) -> Iterator[tuple[str, Any]]:
         if not self.parallel:
+            self.mode = "one"
             yield from _batches(self.path, self.huge_tree, self.batch_size, self.transform)
             return
         self.start()
-        proc = self._proc
-        assert proc is not None and proc.stdout is not None
         try:
-            while True:
-                head = _read_exactly(proc.stdout, _LEN.size)
-                body = None if head is None else _read_exactly(proc.stdout, _LEN.unpack(head)[0])
-                if body is None:
-                    code = proc.wait(timeout=10)
-                    raise CityGMLError(f"reader process died (exit code {code})", path=self.path)
-                kind, obj = pickle.loads(body)
-                if kind == "done":
-                    self.peak_rss_mb = obj
-                    return
-                if kind == "error":
-                    name, message, is_citygml = obj
-                    if is_citygml:
-                        raise CityGMLError(message)
-                    raise RuntimeError(f"reading {self.path}: {name}: {message}")
-                yield kind, obj
+            if self.mode == "split":
+                yield from self._split_batches()
+            else:
+                proc = self._procs[0]
+                assert proc.stdout is not None
+                yield from self._frames(proc.stdout, proc)
         finally:
             self.close()

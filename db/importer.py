@@ -20,9 +20,11 @@ in place and usable throughout, and rows of other models are touched only by a r
 final step. Two imports of one name do not wait on each other: the second is refused
 (`ModelExistsError`). The COPY text of a batch (geometries as hex EWKB built in Python with
 numpy, planes, footprints, envelopes, checks: `db.import_rows`) is made where the file is read;
-for big files that is a separate reader process (`db.import_stream`), so parsing overlaps with
-the database's work. Row ids are reserved from the sequences in one round trip per batch, so
-parents, roots, surfaces and texture targets are linked without further queries.
+for big files that is a separate reader process, or two, one per half (`db.import_stream`), so
+parsing overlaps with the database's work. Where the role may, the foreign keys of the copied
+rows (all pointing to rows of this import) are not checked row by row (`own_links_unchecked`).
+Row ids are reserved from the sequences in one round trip per batch, so parents, roots, surfaces
+and texture targets are linked without further queries.
 
 A model name that exists is refused (`ModelExistsError`) unless `replace=True`. Before it starts,
 an import removes models left in state `importing` by dead imports (`db.ops.remove_dead_imports`;
@@ -71,13 +73,7 @@ from db.srid import database_srid, model_epsg, to_database
 from workers.pipeline.geometry.citymodel import Appearance, ModelHeader
 from workers.pipeline.geometry.crs import UnknownCRSError, vertical_epsg
 
-__all__ = [
-    "ImportInterrupted",
-    "ImportOptions",
-    "ImportProgress",
-    "ImportSummary",
-    "import_citygml",
-]
+__all__ = ["ImportInterrupted", "ImportOptions", "ImportProgress", "ImportSummary", "import_citygml"]
 
 log = logging.getLogger(__name__)
 
@@ -97,9 +93,15 @@ class ImportOptions:
         huge_tree: passed to the reader (lift libxml2 limits for unusual files).
         parallel_read: parse the file in a separate reader process while this one writes (None:
             for files larger than `parallel_above_bytes`).
+        split_above_bytes: a file read in parallel that is at least this large is parsed by two
+            reader processes, one per half (`db.import_stream`; the same rows in the same order);
+            None: always one reader process.
         import_images: store the image files of the file's textures that lie in its folder.
         crs: the CRS of the file's coordinates (e.g. `EPSG:25832`) when the file names none, or
             to override what it names. The geometries are stored in the database SRID.
+        own_links_unchecked: skip the foreign-key checks of the copied rows (each links to a row
+            of this import, by ids it reserved; `session_replication_role = replica` until the
+            final step) where the role may and the schema has no trigger of its own.
     """
 
     batch_size: int = 250
@@ -107,8 +109,10 @@ class ImportOptions:
     huge_tree: bool = False
     parallel_read: bool | None = None
     parallel_above_bytes: int = 16 * 1024**2
+    split_above_bytes: int | None = 32 * 1024**2
     import_images: bool = True
     crs: str | None = None
+    own_links_unchecked: bool = True
 
 
 @dataclass(frozen=True)
@@ -125,8 +129,10 @@ class ImportSummary:
     appearances: int
     seconds: float
     replaced: bool
-    #: peak RSS of the reader process (MB) when the file was read in parallel.
+    #: peak RSS of the reader process (MB; the largest of them) when the file was read in parallel.
     reader_peak_rss_mb: float | None = None
+    #: CPU seconds of each reader process (start-up included), in the order they read the file.
+    reader_cpu_s: tuple[float, ...] = ()
     #: seconds: starting (dead imports removed, model row), waiting for the reader, writing
     #: batches, the final step, the commit, planner statistics afterwards.
     timings_s: dict[str, float] = field(default_factory=dict)
@@ -196,6 +202,25 @@ def _write_lines(
             store_appearance_images(conn, app_ids, image_dir)
 
 
+def _may_skip_link_checks(conn: Connection) -> bool:
+    """True when this session may set `session_replication_role` (superuser, or SET granted:
+    PostgreSQL 15+) and the schema has no trigger of its own (replica mode would skip it too)."""
+    su, version, user_triggers = conn.execute(
+        text(
+            "SELECT current_setting('is_superuser') = 'on', current_setting('server_version_num')::int, "
+            "EXISTS (SELECT 1 FROM pg_trigger t JOIN pg_class c ON c.oid = t.tgrelid "
+            "WHERE NOT t.tgisinternal AND c.relnamespace = CAST(current_schema() AS regnamespace))"
+        )
+    ).one()
+    if user_triggers:
+        return False
+    if su:
+        return True
+    return version >= 150000 and bool(
+        conn.execute(text("SELECT has_parameter_privilege('session_replication_role', 'SET')")).scalar_one()
+    )
+
+
 def _start_model(
     conn: Connection,
     header: ModelHeader,
@@ -204,6 +229,7 @@ def _start_model(
     srid: int,
     replace: bool,
     image_dir: Path | None = None,
+    skip_link_checks: bool = False,
 ) -> tuple[int, bool]:
     """Begin the import's transaction: take the name lock, create the `city_model` row. When a
     model of that name exists (and `replace` is set) the new one is written under a temporary name
@@ -223,6 +249,8 @@ def _start_model(
         ),
         {"app": f"citytherm import {name}"[:63]},
     )
+    if skip_link_checks:  # until `_finish_model`: the rows copied link only to rows of this import
+        conn.execute(text("SET LOCAL session_replication_role = replica"))
     old = conn.execute(text("SELECT id FROM city_model WHERE name = :n"), {"n": name}).first()
     replaced = old is not None
     if replaced and not replace:
@@ -264,7 +292,9 @@ def _finish_model(
     image_dir: Path | None = None,
 ) -> None:
     """Late appearances, cross-batch texture targets, counts, envelope; the model takes its name
-    (replacing an older model of that name in the same transaction)."""
+    (replacing an older model of that name in the same transaction); foreign keys act again."""
+    if conn.execute(text("SELECT current_setting('session_replication_role') <> 'origin'")).scalar_one():
+        conn.execute(text("SET LOCAL session_replication_role = origin"))
     old = conn.execute(
         text("SELECT id FROM city_model WHERE name = :n AND id <> :m FOR UPDATE"), {"n": name, "m": model_id}
     ).first()
@@ -379,7 +409,11 @@ def _import(
     stream = BatchStream(
         path,
         batch_size=opts.batch_size,
-        transform=partial(batch_lines, srid=db_srid, checks=opts.checks, to_db=to_db),
+        # an identity transform is left out: the reader process then never loads PROJ
+        transform=partial(
+            batch_lines, srid=db_srid, checks=opts.checks, to_db=None if to_db.identity else to_db
+        ),
+        split_above_bytes=opts.split_above_bytes,
         huge_tree=opts.huge_tree,
         parallel=parallel,
     )
@@ -398,7 +432,8 @@ def _import(
                     column,
                     problem,
                 )
-            model_id, replaced = _start_model(conn, header, path, name, srid, replace, image_dir)
+            skip_checks = opts.own_links_unchecked and _may_skip_link_checks(conn)
+            model_id, replaced = _start_model(conn, header, path, name, srid, replace, image_dir, skip_checks)
             timings["start"] = time.perf_counter() - t0
             t_wait = time.perf_counter()
             for kind, obj in stream:
@@ -457,6 +492,7 @@ def _import(
         seconds=time.perf_counter() - t0,
         replaced=replaced,
         reader_peak_rss_mb=stream.peak_rss_mb,
+        reader_cpu_s=tuple(round(c, 3) for c in stream.reader_cpu_s),
         timings_s={k: round(v, 3) for k, v in timings.items()},
         removed_dead_imports=len(dead),
     )

@@ -143,6 +143,56 @@ def _is_gml(tag: str) -> bool:
     return tag.startswith("{http://www.opengis.net/gml")
 
 
+#: what a child element of a building is, for `_BuildingReader.draft` (cached per tag)
+(
+    _D_OTHER,
+    _D_GEOMETRY,
+    _D_BOUNDARY,
+    _D_ENVELOPE,
+    _D_NAME,
+    _D_STANDARD,
+    _D_CORE,
+    _D_APPEARANCE,
+    _D_PARTS,
+    _D_INSTALLATION,
+    _D_GENERIC,
+) = range(11)
+_DRAFT_KIND: dict[str, int] = {}
+
+
+def _draft_kind(tag: str) -> int:
+    """`_D_*` kind of the child element tag `tag` of a building (cached per tag)."""
+    kind = _DRAFT_KIND.get(tag)
+    if kind is not None:
+        return kind
+    ln, is_gml = local(tag), _is_gml(tag)
+    if _prop_lod(tag) >= 0:
+        kind = _D_GEOMETRY
+    elif ln in ("boundedBy", "boundary") and not is_gml:
+        kind = _D_BOUNDARY
+    elif ln == "boundedBy":
+        kind = _D_ENVELOPE
+    elif ln == "name" and is_gml:
+        kind = _D_NAME
+    elif ln in STANDARD_ATTRIBUTES and not is_gml:
+        kind = _D_STANDARD
+    elif ln in CORE_ATTRIBUTES:
+        kind = _D_CORE
+    elif ln == "appearance":
+        kind = _D_APPEARANCE
+    elif ln in ("consistsOfBuildingPart", "buildingPart"):
+        kind = _D_PARTS
+    elif ln == "outerBuildingInstallation":
+        kind = _D_INSTALLATION
+    elif ln in _GENERIC_KINDS or ln in ("genericAttribute", "genericAttributeSet"):
+        kind = _D_GENERIC
+    else:
+        kind = _D_OTHER
+    if len(_DRAFT_KIND) < 4096:
+        _DRAFT_KIND[tag] = kind
+    return kind
+
+
 class _BuildingReader:
     """Reads one top-level building element (and its parts) into a `Building`."""
 
@@ -257,8 +307,9 @@ class _BuildingReader:
             sid = get_id(surf, self.id_attr)
             if sid:
                 self.scope.ids.add(sid)
-            for ch in surf:
-                if isinstance(ch.tag, str):
+            for ch in surf:  # geometry properties among the surface's attributes
+                lod = _PROP_LOD.get(ch.tag)
+                if lod is None or lod >= 0:
                     self._geom_property(ch, d, cls, sid)
 
     def _installation(self, prop: etree._Element, d: _Draft) -> None:
@@ -322,41 +373,45 @@ class _BuildingReader:
         d = _Draft(id=bid, generated_id=generated, is_part=parent is not None, parent_id=parent)
         self.scope.ids.add(bid)
         n_parts = 0
+        kinds = _DRAFT_KIND
         for ch in el:
             tag = ch.tag
             if not isinstance(tag, str):
                 continue
-            ln = local(tag)
-            is_gml = _is_gml(tag)
-            if self._geom_property(ch, d, "unclassified", None):
-                continue
-            if ln in ("boundedBy", "boundary") and not is_gml:
+            kind = kinds.get(tag)
+            if kind is None:
+                kind = _draft_kind(tag)
+            if kind == _D_BOUNDARY:
                 self._boundary(ch, d)
-            elif ln == "boundedBy":
+            elif kind == _D_GENERIC:
+                self._generic(ch, d)
+            elif kind == _D_GEOMETRY:
+                self._geom_property(ch, d, "unclassified", None)
+            elif kind == _D_OTHER:
+                continue
+            elif kind == _D_STANDARD:
+                self._standard(local(tag), ch, d)
+            elif kind == _D_CORE:
+                d.attributes[local(tag)] = (ch.text or "").strip()
+            elif kind == _D_ENVELOPE:
                 env = ch[0] if len(ch) else None
                 if env is not None and env.get("srsName"):
                     d.envelope_srs = env.get("srsName")
-            elif ln == "name" and is_gml:
+            elif kind == _D_NAME:
                 d.name = d.name if d.name is not None else (ch.text or "").strip()
-            elif ln in STANDARD_ATTRIBUTES and not is_gml:
-                self._standard(ln, ch, d)
-            elif ln in CORE_ATTRIBUTES:
-                d.attributes[ln] = (ch.text or "").strip()
-            elif ln == "appearance":
+            elif kind == _D_APPEARANCE:
                 for app in ch:
                     if local(app.tag) == "Appearance":
                         d.appearances.append(parse_appearance(app, self.id_attr, self.local_sd, d.id))
-            elif ln in ("consistsOfBuildingPart", "buildingPart"):
+            elif kind == _D_PARTS:
                 for part in ch:
                     if local(part.tag) == "BuildingPart":
                         pid = get_id(part, self.id_attr)
                         n_parts += 1
                         gen = not pid
                         d.parts.append(self.draft(part, pid or f"{bid}_part{n_parts}", gen, bid))
-            elif ln == "outerBuildingInstallation":
+            elif kind == _D_INSTALLATION:
                 self._installation(ch, d)
-            elif ln in _GENERIC_KINDS or ln in ("genericAttribute", "genericAttributeSet"):
-                self._generic(ch, d)
         return d
 
     def _unique(self, base: str) -> str:

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from os import PathLike
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from lxml import etree
@@ -118,11 +119,16 @@ def _envelope(env: etree._Element) -> tuple[tuple[np.ndarray, np.ndarray] | None
 class _Stream:
     """One pass over a file, yielding `("header", ModelHeader)` (exactly once, before the first
     building), `("building", Building)` and `("appearance", Appearance)` for CityModel-level
-    appearances that come after the header."""
+    appearances that come after the header. `source` (optional) opens the bytes to parse instead
+    of the file (e.g. a part of it behind its header, `db.import_stream`); `path` still names the
+    file in messages and its prolog is checked."""
 
-    def __init__(self, path: str | PathLike[str], huge_tree: bool) -> None:
+    def __init__(
+        self, path: str | PathLike[str], huge_tree: bool, source: Callable[[], BinaryIO] | None = None
+    ) -> None:
         self.path = Path(path)
         self.huge_tree = huge_tree
+        self.source = source
         self.surface_data: dict[str, SurfaceData] = {}
 
     def events(self) -> Iterator[tuple[str, object]]:
@@ -152,7 +158,7 @@ class _Stream:
         name: str | None = None
         root: etree._Element | None = None
         n_buildings = 0
-        with open(self.path, "rb") as f:
+        with open(self.path, "rb") if self.source is None else self.source() as f:
             it = etree.iterparse(
                 f,
                 events=("end",),

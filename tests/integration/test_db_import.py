@@ -346,3 +346,79 @@ def test_texture_images_next_to_the_file_are_imported(db_engine, tmp_path) -> No
     assert out.textures == 4 and validate_citygml2(out.path) == []
     for uri in uris[1:]:
         assert (tmp_path / "out" / uri).read_bytes() == (folder / uri).read_bytes()
+
+
+def test_two_readers_and_unchecked_own_links_write_the_same_rows(db_engine) -> None:
+    """Two reader processes (one per half of the file) and the foreign keys of the copied rows
+    left unchecked (the test role may set `session_replication_role`) give the rows of one reader
+    with every check; the final step checks and cascades again: a replacement takes the surface
+    data of the old model's appearances with it."""
+    path = DATA / "nrw-tile-5659-citygml1-lod2.gml"
+    checked = ImportOptions(parallel_read=False, own_links_unchecked=False, batch_size=30)
+    plain = import_citygml(db_engine, path, name="split-plain", options=checked)
+    fast_opts = ImportOptions(parallel_read=True, split_above_bytes=1, batch_size=30)
+    fast = import_citygml(db_engine, path, name="split-fast", options=fast_opts)
+    assert len(fast.reader_cpu_s) == 2 and plain.reader_cpu_s == ()
+    sql = (
+        "SELECT b.gml_id, b.ordinal, b.is_part, p.gml_id, r.gml_id, b.attributes, ST_AsBinary(b.footprint), "
+        "ST_AsBinary(b.envelope), s.gml_id, s.ordinal, ST_AsBinary(s.geometry), s.ring_ids, s.checks "
+        "FROM surface s JOIN building b ON b.id = s.building_id JOIN building r ON r.id = b.root_id "
+        "LEFT JOIN building p ON p.id = b.parent_id WHERE s.city_model_id = :m ORDER BY b.ordinal, s.ordinal"
+    )
+    with db_engine.connect() as c:
+        assert importer_mod._may_skip_link_checks(c)
+        rows = [c.execute(text(sql), {"m": m}).all() for m in (plain.model_id, fast.model_id)]
+    assert len(rows[0]) == plain.surfaces and rows[1] == rows[0]
+    berlin = DATA / "berlin-moabit-textured-citygml2-lod2.gml"
+    first = import_citygml(db_engine, berlin, name="split-berlin")
+    n_data = _scalar(
+        db_engine,
+        "SELECT count(*) FROM surface_data sd JOIN appearance a ON a.id = sd.appearance_id "
+        "WHERE a.city_model_id = :m",
+        m=first.model_id,
+    )
+    assert n_data > 0
+    import_citygml(db_engine, berlin, name="split-berlin", replace=True)
+    orphans = (
+        "SELECT count(*) FROM surface_data sd "
+        "WHERE NOT EXISTS (SELECT 1 FROM appearance a WHERE a.id = sd.appearance_id)"
+    )
+    assert _scalar(db_engine, orphans) == 0
+
+
+def test_foreign_keys_are_unchecked_only_where_allowed_and_no_trigger_is(db_engine, migrated_db) -> None:
+    """`session_replication_role` is set only by a role that may (a superuser, or one granted SET
+    on it) and only while the schema has no trigger of its own (replica mode would skip it)."""
+    import psycopg
+    from sqlalchemy import create_engine
+    from sqlalchemy.engine import make_url
+
+    from db.session import sqlalchemy_url
+
+    role = "citytherm_test_import_role"
+    with psycopg.connect(migrated_db, autocommit=True) as c:
+        c.execute(f"DROP ROLE IF EXISTS {role}")
+        c.execute(f"CREATE ROLE {role} LOGIN")
+    plain = create_engine(make_url(sqlalchemy_url(migrated_db)).set(username=role))
+    try:
+        with plain.connect() as c:
+            assert not importer_mod._may_skip_link_checks(c)
+        with psycopg.connect(migrated_db, autocommit=True) as c:
+            c.execute(f"GRANT SET ON PARAMETER session_replication_role TO {role}")
+        with plain.connect() as c:
+            assert importer_mod._may_skip_link_checks(c)
+        with db_engine.connect() as c:  # a trigger of the schema's own: replica mode for nobody
+            assert importer_mod._may_skip_link_checks(c)
+            c.execute(
+                text("CREATE FUNCTION noop() RETURNS trigger LANGUAGE plpgsql AS 'BEGIN RETURN NEW; END'")
+            )
+            c.execute(
+                text("CREATE TRIGGER audit AFTER INSERT ON surface FOR EACH ROW EXECUTE FUNCTION noop()")
+            )
+            assert not importer_mod._may_skip_link_checks(c)
+            c.rollback()
+    finally:
+        plain.dispose()
+        with psycopg.connect(migrated_db, autocommit=True) as c:
+            c.execute(f"REVOKE SET ON PARAMETER session_replication_role FROM {role}")
+            c.execute(f"DROP ROLE {role}")
