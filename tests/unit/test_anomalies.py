@@ -248,10 +248,15 @@ def test_a_warm_patch_seen_by_one_frame_only_is_not_a_leak():
 
 
 def test_coarse_grid_invents_no_windows():
+    """0.5 m texels: panes of 2.4 × 2.8 texels. Every window reported is a real pane (centre
+    within 0.5 m); without panes in the field, none is reported."""
     grid = wall_grid(px_per_m=2.0)
     assert grid.size == pytest.approx(0.5)
     res = analyse_surface(grid, wall_texture(grid))
-    assert res.of_kind("window") == ()
+    panes = np.array([grid.points_at(truth_xy(grid, s, h)[None])[0] for s, h in pane_centres()])
+    for w in res.of_kind("window"):
+        assert np.min(np.linalg.norm(panes - w.centre, axis=1)) < 0.5
+    assert analyse_surface(grid, wall_texture(grid, windows=False)).of_kind("window") == ()
     assert np.isfinite(res.typical)
     for a in res.of_kind("leak"):  # whatever is found is a planted leak
         assert any(np.linalg.norm(a.centre - grid.points_at(truth_xy(grid, lk.s, lk.h)[None])[0]) < 0.8

@@ -33,7 +33,10 @@ class AnomalyOptions:
         window_delta_k: a pane deviates from typical by at least this (either sign).
         window_min_m, window_max_m: pane side lengths accepted as a window.
         window_min_texels: a pane must span this many texels per side (else no windows: an
-            unresolved grid is not invented).
+            unresolved grid is not invented); on coarse textures (`windows.coarse`: the
+            smallest pane spans fewer) a blurred pane counts by its half-depth extents, which
+            must reach `window_min_texels − 1` texels, and only in a regular group or as a
+            clean lone pane (`docs/anomalies.md`).
         window_fill: smallest share of its bounding box a pane blob fills (rectangle-likeness).
         window_min_count: windows come in groups: this many similar aligned panes at least.
         window_lone_fill: a cold pane outside any group (a facade seen in part) is a window when

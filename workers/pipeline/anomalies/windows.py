@@ -11,6 +11,10 @@ one row (centres within a quarter of the height) or one column; a linked group o
 `window_min_count` blobs whose column and row positions lie on a lattice (each position an
 integer multiple of the smallest spacing, ±20 %) is a window group. A cold blob outside any group
 is a window too when it is a clean rectangle (`window_lone_fill`) of 0.6–2.5 m a side.
+
+Coarse textures (`coarse`: flights), where the imaging blur decides a small pane's segmented
+shape: cold local minima also give pane candidates by their half-depth regions, measured
+sub-texel (`half_depth_extent`), linked with one texel more of slack (`_blurred_blobs`).
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ class Window:
     sign: int  # -1 colder than typical, +1 warmer
     fill: float  # share of the box the blob fills
     group: int  # size of its regular group
+    blurred: bool = False  # found on a coarse texture by its half-depth region (`_blurred_blobs`)
+    extent: tuple[float, float] = (0.0, 0.0)  # its half-depth width and height, texels (blurred)
 
     @property
     def box(self) -> tuple[slice, slice]:
@@ -66,10 +72,78 @@ def _blobs(excess: np.ndarray, sign: int, size: float, o: AnomalyOptions) -> lis
     return out
 
 
+def coarse(size: float, o: AnomalyOptions) -> bool:
+    """Whether a texture is coarse for windows: the smallest pane (`window_min_m`) spans fewer
+    than `window_min_texels` texels, so that the imaging blur (about a texel there) decides a
+    pane's segmented shape more than the pane does."""
+    return o.window_min_m < o.window_min_texels * size
+
+
+def _blurred_blobs(excess: np.ndarray, sign: int, size: float, o: AnomalyOptions) -> list[Window]:
+    """Pane candidates of a coarse texture (`coarse`): every local extremum of `sign · excess`
+    (3 × 3) of at least `window_delta_k`, strongest first, with the texels 4-connected to it at
+    half its depth or more (its half-depth region; a blurred box's half-depth contour lies near
+    the box's edge). Kept when its half-depth extents (`half_depth_extent`, sub-texel) reach
+    `window_min_texels − 1` texels and `window_min_m` and stay under `window_max_m` on both
+    sides. They carry no rectangle evidence of their own (`fill` is the region's share of its
+    box): a regular group, or the lone-pane rule on their extents (`_lone_pane`), makes them
+    windows (`find_windows`)."""
+    d = np.nan_to_num(sign * excess, nan=0.0).astype(np.float32)
+    peak = (d >= o.window_delta_k) & (d >= cv2.dilate(d, np.ones((3, 3), np.uint8)))
+    H, W = d.shape
+    lo = max(o.window_min_texels - 1.0, o.window_min_m / size)
+    hi = o.window_max_m / size
+    R = math.ceil(hi) + 1
+    taken = np.zeros(d.shape, bool)
+    out = []
+    for k in np.argsort(-d[peak]):
+        i, j = (int(v[k]) for v in np.nonzero(peak))
+        if taken[i, j]:
+            continue
+        win = (slice(max(i - R, 0), min(i + R + 1, H)), slice(max(j - R, 0), min(j + R + 1, W)))
+        _, lab = cv2.connectedComponents((d[win] >= 0.5 * d[i, j]).view(np.uint8), connectivity=4)
+        region = lab == lab[i - win[0].start, j - win[1].start]
+        ys, xs = np.nonzero(region)
+        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        taken[win] |= region
+        grown = np.maximum(d[win][max(y0 - 1, 0) : y1 + 1, max(x0 - 1, 0) : x1 + 1], 0.0)
+        bw, bh = half_depth_extent(grown.max(axis=0)), half_depth_extent(grown.max(axis=1))
+        if not (lo <= min(bw, bh) and max(bw, bh) <= hi):
+            continue
+        fill = float(region.sum()) / ((y1 - y0) * (x1 - x0))
+        y, x = int(y0) + win[0].start, int(x0) + win[1].start
+        out.append(Window(x, y, x + int(x1 - x0), y + int(y1 - y0), sign, fill, 0, True, (bw, bh)))
+    return out
+
+
+def half_depth_extent(profile: np.ndarray) -> float:
+    """Width (texels, sub-texel) of the part of a 1D `profile` (≥ 0, a blob's depth per column
+    or row) at or above half its maximum: the whole texels from the first to the last above it
+    plus, at each end, the fraction of the step to the next texel where the linear interpolation
+    crosses half the maximum, less half a texel (a box of width L blurred by a Gaussian of σ <
+    L/2 has a half-depth width ≈ L, whatever the phase of the texel grid).
+
+    >>> round(half_depth_extent(np.array([0.0, 0.6, 1.5, 1.6, 0.6, 0.0])), 2)
+    2.58
+    """
+    p = np.nan_to_num(np.asarray(profile, np.float64), nan=0.0)
+    half = 0.5 * float(p.max())
+    above = np.flatnonzero(p >= half)
+    a, b = int(above[0]), int(above[-1])
+    width = float(b - a + 1)
+    for inner, outer in ((a, a - 1), (b, b + 1)):
+        if 0 <= outer < len(p) and p[inner] > p[outer]:
+            width += min(1.0, (p[inner] - half) / (p[inner] - p[outer])) - 0.5
+    return float(width)
+
+
 def _lone_pane(w: Window, size: float, o: AnomalyOptions) -> bool:
     """A cold blob outside any group that is still a window: fill ≥ `window_lone_fill`, sides
-    0.6–2.5 m (a facade seen in part often shows one window only)."""
+    0.6–2.5 m (a facade seen in part often shows one window only); a blurred blob (coarse
+    texture: no fill to judge) by its half-depth extents, when `window_lone_fill` < 1."""
     lo, hi = max(0.6, o.window_min_m), min(2.5, o.window_max_m)
+    if w.blurred:
+        return o.window_lone_fill < 1 and all(lo <= v * size <= hi for v in w.extent)
     sides = ((w.x1 - w.x0) * size, (w.y1 - w.y0) * size)
     return w.fill >= o.window_lone_fill and all(lo <= v <= hi for v in sides)
 
@@ -106,8 +180,10 @@ def _regular(blobs: list[Window], min_count: int) -> list[Window]:
     cx, cy = 0.5 * (b[:, 0] + b[:, 2]), 0.5 * (b[:, 1] + b[:, 3])
     sim_w = np.abs(w[:, None] - w[None]) <= 0.2 * np.maximum(w[:, None], w[None]) + 1
     sim_h = np.abs(h[:, None] - h[None]) <= 0.2 * np.maximum(h[:, None], h[None]) + 1
-    row = np.abs(cy[:, None] - cy[None]) <= 0.25 * np.maximum(h[:, None], h[None]) + 0.5
-    col = np.abs(cx[:, None] - cx[None]) <= 0.25 * np.maximum(w[:, None], w[None]) + 0.5
+    slack = 0.5 + np.array([blob.blurred for blob in blobs], float)  # a blurred box: ± a texel more
+    slack = np.maximum(slack[:, None], slack[None])
+    row = np.abs(cy[:, None] - cy[None]) <= 0.25 * np.maximum(h[:, None], h[None]) + slack
+    col = np.abs(cx[:, None] - cx[None]) <= 0.25 * np.maximum(w[:, None], w[None]) + slack
     link = sim_w & sim_h & (row | col)
     parent = list(range(n))
 
@@ -127,7 +203,9 @@ def _regular(blobs: list[Window], min_count: int) -> list[Window]:
             continue
         if not (_on_lattice(cx[m], 0.5 * w[m].mean()) and _on_lattice(cy[m], 0.5 * h[m].mean())):
             continue
-        out += [Window(*(int(v) for v in b[i]), blobs[i].sign, blobs[i].fill, len(m)) for i in m]
+        out += [
+            Window(*(int(v) for v in b[i]), blobs[i].sign, blobs[i].fill, len(m), blobs[i].blurred) for i in m
+        ]
     return out
 
 
@@ -163,6 +241,11 @@ def find_windows(values: np.ndarray, typical: float, size: float, o: AnomalyOpti
     windows: list[Window] = []
     for sign in (-1, 1):
         blobs = _blobs(excess, sign, size, o)
+        if sign < 0 and coarse(size, o):  # blurred panes, not already segmented as blobs
+            seen = np.zeros(shape, bool)
+            for w in blobs:
+                seen[w.box] = True
+            blobs += [w for w in _blurred_blobs(excess, sign, size, o) if not seen[w.box].any()]
         regular = _regular(blobs, o.window_min_count)
         if sign < 0:  # a lone cold pane: a clean rectangle of a window's size
             grouped = {(w.x0, w.y0) for w in regular}
