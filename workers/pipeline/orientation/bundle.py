@@ -30,7 +30,11 @@ Unknowns: per frame a correction `δ_f = (ω_cam, dC_world)` of its pose
   each would pin a block of forty frames to its common error as if it were known to centimetres.
 
 Each Gauss-Newton step eliminates the points (3 × 3 blocks, Schur complement) and solves the
-reduced `6 (n + 1) × 6 (n + 1)` system of the frames and the common correction. After
+reduced `6 (n + 1) × 6 (n + 1)` system of the frames and the common correction: banded (a track
+ties a few consecutive frames) with the common correction as a dense border (`bundle_system`).
+The visible model edges of a frame are computed on the part of the wireframe its camera may see
+(`edge_observations.FrameWireframes`: the same samples as on the whole scene). The same problem
+solved by Ceres is the test oracle (`bundle_ceres`; `bench/bundle.py` compares both). After
 convergence, tie observations beyond `outlier_px` are dropped and the adjustment continues. The
 frame covariances are the diagonal blocks of the reduced system's inverse, scaled by the
 a-posteriori variance factor (≥ 1).
@@ -42,18 +46,24 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, project_jacobian, step_scale
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.bundle_system import (
+    banded_width,
+    block_sums,
+    diagonal_inverse_blocks,
+    single_threaded_blas,
+    solve_reduced,
+)
 from workers.pipeline.orientation.edge_observations import (
     FrameEdges,
+    FrameWireframes,
     edge_support,
     frame_edges,
     normal_equations,
-    visible_samples,
 )
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
@@ -78,12 +88,15 @@ class BundleOptions:
     plane_tukey_m: float = 0.5
     # model edges: on/off, weight of the edge normal equations, search radius at the start
     # (shrinks by `radius_decay` to the frame fit's minimum), visibility recomputed every n-th
-    # iteration
+    # iteration and for the final figures, unless no visible sample moved more than
+    # `visibility_reuse_px` in the image since it was last computed (0: always recomputed;
+    # hidden-edge removal and sample spacing are a visibility decision, not a derivative)
     edges: bool = True
     edge_weight: float = 1.0
     edge_radius_start_px: float = 16.0
     radius_decay: float = 0.75
     revisibility_every: int = 4
+    visibility_reuse_px: float = 0.5
     # Gauss-Newton iterations before and after the outlier removal (undamped: Levenberg damping of
     # the diagonal slowed the weak directions, a tilt traded against a height that only a few
     # inclined edges see, from 0.18 px to 3.6 px after ten iterations; the steps are bounded to
@@ -188,6 +201,19 @@ def bundle_adjust(
         options, fit_options, edge_options, feature_options: parameters.
         prior_options: the null shift of the final edge support (`null_support`).
     """
+    with single_threaded_blas():  # small dense algebra: OpenBLAS threads only spin (bundle_system)
+        return _adjust(camera, frames, images, start, prior, frame_info, common_info, tracks, wireframe,
+                       raycaster, options, fit_options, edge_options, feature_options, prior_options)
+
+
+def _adjust(
+    camera: Camera, frames: Sequence[int], images: Mapping[int, np.ndarray], start: Mapping[int, Pose],
+    prior: Mapping[int, Pose], frame_info: Mapping[int, np.ndarray], common_info: np.ndarray | None,
+    tracks: Tracks, wireframe: Wireframe | None, raycaster: RayCaster, options: BundleOptions,
+    fit_options: FrameFitOptions, edge_options: EdgeOptions, feature_options: FeatureOptions,
+    prior_options: PriorOptions,
+) -> BundleResult:
+    """`bundle_adjust`."""
     frames = list(frames)
     slot = {f: k for k, f in enumerate(frames)}
     n = len(frames)
@@ -201,14 +227,18 @@ def bundle_adjust(
     d_plane = np.asarray(tracks.offset)
     inl = np.ones(len(t_obs), bool)
     edges: dict[int, FrameEdges] = {}
+    wf = None
     if options.edges and wireframe is not None:
+        # per frame the part of the scene wireframe it may see (the same visible samples)
+        wf = wireframe if isinstance(wireframe, FrameWireframes) else FrameWireframes(wireframe, camera)
         margin = options.edge_radius_start_px + fit_options.roi_margin_px
-        edges = frame_edges(camera, wireframe, raycaster, frames, images, poses, margin, fit_options,
+        edges = frame_edges(camera, wf, raycaster, frames, images, poses, margin, fit_options,
                             edge_options, feature_options)
     w_tie = options.tie_sigma_px ** -2
     w_plane = options.plane_sigma_m ** -2
     nc = 0 if common_info is None else 1  # the common correction's block
     S = np.zeros((6 * (n + nc), 6 * (n + nc)))
+    band = banded_width(t_obs, f_obs, len(X))
     common = np.zeros(6)
     polish, k_phase = False, 0
     converged = True
@@ -218,14 +248,13 @@ def bundle_adjust(
                                              f_obs[inl], t_obs[inl], uv_obs[inl], X, nrm, d_plane, w_tie,
                                              w_plane, options)
         if edges:
-            _add_edge_equations(S, b, camera, wireframe, raycaster, edges, poses, slot, it, R_e,  # type: ignore[arg-type]
+            _add_edge_equations(S, b, camera, wf, raycaster, edges, poses, slot, it, R_e,  # type: ignore[arg-type]
                                 options, fit_options, edge_options)
-        try:
-            c = cho_factor(S)
-        except np.linalg.LinAlgError:
+        x = solve_reduced(S, b, n, band)
+        if x is None:
             converged = False
             break
-        dx = _bounded(cho_solve(c, b), options)
+        dx = _bounded(x, options)
         steps = dx.reshape(-1, 6)[:n]
         for f in frames:
             poses[f] = apply_delta(poses[f], steps[slot[f]])
@@ -245,8 +274,9 @@ def bundle_adjust(
             inl = np.linalg.norm(r, axis=1) <= options.outlier_px
     # figures at the final poses
     inl, ties, tie_rms, sigma0 = _tie_figures(camera, poses, frames, slot, f_obs, t_obs, uv_obs, X, options)
-    edge_rms, support, null, matched = _edge_figures(camera, wireframe, raycaster, edges, poses,  # type: ignore[arg-type]
-                                                     edge_options, fit_options, prior_options.null_shift_px)
+    edge_rms, support, null, matched = _edge_figures(camera, wf, raycaster, edges, poses,  # type: ignore[arg-type]
+                                                     edge_options, fit_options, prior_options.null_shift_px,
+                                                     options.visibility_reuse_px)
     cov, factored = _covariances(S, frames, slot, sigma0)
     return BundleResult(poses=poses, covariance=cov, ties=ties, tie_rms_px=tie_rms, edge_rms_px=edge_rms,
                         edge_support=support, null_support=null, matched_edges=matched, points=X, inlier=inl,
@@ -269,7 +299,7 @@ def _largest_move(dx: np.ndarray) -> float:
 
 
 def _add_edge_equations(
-    S: np.ndarray, b: np.ndarray, camera: Camera, wireframe: Wireframe, raycaster: RayCaster,
+    S: np.ndarray, b: np.ndarray, camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster,
     edges: Mapping[int, FrameEdges], poses: Mapping[int, Pose], slot: Mapping[int, int], it: int, R_e: float,
     options: BundleOptions, fit_options: FrameFitOptions, edge_options: EdgeOptions,
 ) -> None:
@@ -281,8 +311,8 @@ def _add_edge_equations(
     zero6 = np.zeros((6, 6))
     for f, ed in edges.items():
         if it % options.revisibility_every == 0 and it > 0:
-            ed.vis = visible_samples(wireframe, camera, poses[f], raycaster, edge_options,
-                                     fit_options.max_samples)
+            ed.vis = wireframe.visible(f, poses[f], raycaster, edge_options, fit_options.max_samples,
+                                       options.visibility_reuse_px)
         if ed.vis is None or len(ed.vis.points) < fit_options.min_samples:
             continue
         He, ge, *_ = normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
@@ -321,8 +351,9 @@ def _tie_figures(
 
 
 def _edge_figures(
-    camera: Camera, wireframe: Wireframe, raycaster: RayCaster, edges: Mapping[int, FrameEdges],
+    camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster, edges: Mapping[int, FrameEdges],
     poses: Mapping[int, Pose], edge_options: EdgeOptions, fit_options: FrameFitOptions, null_shift_px: float,
+    reuse_px: float,
 ) -> tuple[dict[int, float], dict[int, float], dict[int, float], dict[int, int]]:
     """Per frame that sees model edges, at its final pose (`edge_observations.edge_support`): RMS
     of the inlier edge offsets (px), edge support, null support (samples `null_shift_px` off
@@ -332,8 +363,9 @@ def _edge_figures(
     null: dict[int, float] = {}
     matched: dict[int, int] = {}
     for f, ed in edges.items():
-        got = edge_support(camera, wireframe, raycaster, poses[f], ed.feats, edge_options, fit_options,
-                           null_shift_px)
+        vis = wireframe.visible(f, poses[f], raycaster, edge_options, fit_options.max_samples, reuse_px)
+        got = edge_support(camera, wireframe.wireframe, raycaster, poses[f], ed.feats, edge_options,
+                           fit_options, null_shift_px, visible=vis)
         if got is None:
             continue
         support[f], null[f], off, matched[f] = got
@@ -346,14 +378,13 @@ def _covariances(S: np.ndarray, frames: Sequence[int], slot: Mapping[int, int],
     """The frames' covariances `(6, 6)` from the Cholesky factor of the last reduced system `S`,
     scaled by max(1, σ0²), and whether `S` was positive definite (else NaN: the frames' poses
     are not determined)."""
-    ok = True
-    try:
-        Sinv = cho_solve(cho_factor(S), np.eye(len(S)))
-    except np.linalg.LinAlgError:
-        ok = False
-        Sinv = np.full_like(S, np.nan)
+    n = len(frames)
+    blocks = diagonal_inverse_blocks(S, n)
+    ok = blocks is not None
+    if blocks is None:
+        blocks = np.full((n, 6, 6), np.nan)
     s2 = max(1.0, sigma0**2)
-    return {f: Sinv[6 * slot[f]:6 * slot[f] + 6, 6 * slot[f]:6 * slot[f] + 6] * s2 for f in frames}, ok
+    return {f: blocks[slot[f]] * s2 for f in frames}, ok
 
 
 def _residuals(camera: Camera, poses: Mapping[int, Pose], frames: Sequence[int], f_obs: np.ndarray,
@@ -428,10 +459,10 @@ def _normal_system(
         w = w_tie * np.where(a <= options.tie_huber_px, 1.0, options.tie_huber_px / np.maximum(a, 1e-12))
         w = np.where(front, w, 0.0)
         JfW = Jf * w[:, None, None]
-        np.add.at(U, f_obs, np.einsum("oki,okj->oij", JfW, Jf))
-        np.add.at(bu, f_obs, np.einsum("oki,ok->oi", JfW, e))
-        np.add.at(V, t_obs, np.einsum("oki,okj->oij", Jx * w[:, None, None], Jx))
-        np.add.at(bt, t_obs, np.einsum("oki,ok->oi", Jx * w[:, None, None], e))
+        U += block_sums(f_obs, np.einsum("oki,okj->oij", JfW, Jf), n)
+        bu += block_sums(f_obs, np.einsum("oki,ok->oi", JfW, e), n)
+        V += block_sums(t_obs, np.einsum("oki,okj->oij", Jx * w[:, None, None], Jx), T)
+        bt += block_sums(t_obs, np.einsum("oki,ok->oi", Jx * w[:, None, None], e), T)
         Wt = np.einsum("oki,okj->oij", JfW, Jx)
     V_inv = np.linalg.inv(V)
     S4 = np.zeros((n, n, 6, 6))
@@ -440,8 +471,9 @@ def _normal_system(
     if M:
         Y = np.einsum("oij,ojk->oik", Wt, V_inv[t_obs])  # W V⁻¹  (M, 6, 3)
         i, j = track_pairs(t_obs, T)
-        np.add.at(S4, (f_obs[i], f_obs[j]), -np.einsum("pik,pjk->pij", Y[i], Wt[j]))
-        np.add.at(b, f_obs, -np.einsum("oik,ok->oi", Y, bt[t_obs]))
+        pair = np.einsum("pik,pjk->pij", Y[i], Wt[j])
+        S4 -= block_sums(f_obs[i] * n + f_obs[j], pair, n * n).reshape(S4.shape)
+        b -= block_sums(f_obs, np.einsum("oik,ok->oi", Y, bt[t_obs]), n)
     if common_info is None:
         return S4.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n), b.reshape(-1), V_inv, Wt, bt
     S = np.zeros((6 * (n + 1), 6 * (n + 1)))
