@@ -31,7 +31,14 @@ sees the building) are the bench's own choice.
    per frame plus a common error) and a drive with the default error model: frames below 1 px
    before / after, per-frame error median and 90th percentile, stage CPU and wall times.
 
-Usage: `python bench/orientation.py [--frames 40] [--buildings 3] [--seed 1] [--texture] [--quick]`.
+7. with `--methods` only the orientation methods side by side (issue 19; `bench/orientation_methods.py`):
+   per scene (drives with the default GNSS/INS errors, textured and homogeneous facades) and per
+   `--orientation` (edges, sfm, both) frames oriented, (frame, building) pairs below 1 px,
+   median px, the reconstruction's figures, and the bars (sfm ≥ 95 % of frames registered where
+   edges reach < 80 %, ≥ 90 % of pairs below 1 px; both never worse than either alone).
+
+Usage: `python bench/orientation.py [--frames 40] [--buildings 3] [--seed 1] [--texture] [--quick]
+[--methods]`.
 """
 
 from __future__ import annotations
@@ -329,7 +336,17 @@ def main() -> None:
         action="store_true",
         help="only the sequence orientation figures (bench/orientation_sequence.py --quick)",
     )
+    ap.add_argument("--methods", action="store_true", help="only edges / sfm / both side by side")
     a = ap.parse_args()
+    if a.methods:
+        from bench.orientation_methods import method_figures
+
+        t0 = time.perf_counter()
+        scenes = ["textured", "homogeneous"]
+        res = {"bench": "orientation", "methods": method_figures(a.frames, a.seed, scenes)}
+        res["wall_s"] = round(time.perf_counter() - t0, 1)
+        print(json.dumps(res, indent=1))
+        return
     if a.quick:
         from bench.orientation_sequence import sequence_figures
 

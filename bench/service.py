@@ -39,8 +39,10 @@ cluster of 8 buildings, which the plan turns into ~20-25 building units. Prints 
 4. `bars` and `machine` (cpu count, load averages: the machine may be shared, e.g. with CI).
 
 Usage: `python bench/service.py [--frames 100] [--buildings 8] [--interval 0.3] [--no-refine]
-[--repeat 2] [--cold] [--poll-interval 1] [--upload-mb 500] [--keep]` prints JSON (progress on
-stderr); ~6-9 minutes on 2 cores.
+[--repeat 2] [--cold] [--poll-interval 1] [--upload-mb 500] [--worker-threads T] [--keep]` prints
+JSON (progress on stderr); ~6-9 minutes on 2 cores. Each worker caps its libraries at
+`--worker-threads` threads (`citytherm worker --threads`; default cores // 2, the share of each
+of the two workers; 0: uncapped, as before issue 14's caps).
 """
 
 from __future__ import annotations
@@ -365,8 +367,16 @@ def main() -> None:
     ap.add_argument("--cold", dest="warm", action="store_false",
                     help="no warm-up jobs: the measured jobs meet freshly started workers")  # fmt: skip
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder (logs, storage)")
+    ap.add_argument("--worker-threads", type=int, default=max(1, (os.cpu_count() or 1) // 2),
+                    help="library threads per worker process (default: cores // 2, so that the two "
+                    "workers do not oversubscribe the cores; 0: no cap)")  # fmt: skip
     a = ap.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # clean up on SIGTERM too
+    if a.worker_threads > 0:  # `citytherm run` here with the workers' caps of OpenCV and Open3D
+        from workers.pool import THREADS_VAR, cap_library_threads
+
+        os.environ[THREADS_VAR] = str(a.worker_threads)
+        cap_library_threads()
 
     from services.api.schemas import TextureInputs
     from workers.pipeline.synth import BUNDLED_MODEL
@@ -389,11 +399,12 @@ def main() -> None:
             "orient": options.orient,
             "resolution_px_per_m": options.resolution_px_per_m,
             "workers": options.workers,
+            "worker_threads": a.worker_threads,
         }
 
         say("starting the stack (PostgreSQL, Redis, API, worker w1 with beat)")
         stack.up()
-        stack.start_worker("w1", beat=True)
+        stack.start_worker("w1", beat=True, threads=a.worker_threads)
         mid, out["model_upload"] = upload_model(stack, BUNDLED_MODEL)
         sid, out["scene"]["sequence_upload"] = upload_package(stack, pkg, a.part_mb * MiB)
         inputs = {"model": mid, "sequence": sid, **job_inputs}
@@ -420,7 +431,7 @@ def main() -> None:
         one = min(ones, key=lambda r: r["wall_s"])
         out["citytherm_run"] = run
         say("starting worker w2")
-        stack.start_worker("w2", beat=False)
+        stack.start_worker("w2", beat=False, threads=a.worker_threads)
         if a.warm:
             warm["w2"] = warm_up(stack, inputs, small, "w2")
         out["warm_up"] = warm or None

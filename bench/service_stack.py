@@ -184,13 +184,15 @@ class Stack:
         path = self.logs / f"{name}.log"
         return path.read_text(errors="replace") if path.exists() else ""
 
-    def start_worker(self, name: str, beat: bool) -> None:
-        """`citytherm worker --concurrency 1` (node `<name>@bench`), until it answers a ping."""
+    def start_worker(self, name: str, beat: bool, threads: int | None = None) -> None:
+        """`citytherm worker --concurrency 1 [--threads T]` (node `<name>@bench`; `threads`: library
+        threads per process, None: the command's default, 0: no cap), until it answers a ping."""
         from db.settings import Settings
         from workers.celery_app import configure
 
         node = f"{name}@bench"
-        self.start(name, "worker", "--concurrency", "1", "--hostname", node, *(["--beat"] if beat else []))
+        extra = [*(["--beat"] if beat else []), *([] if threads is None else ["--threads", str(threads)])]
+        self.start(name, "worker", "--concurrency", "1", "--hostname", node, *extra)
         app = configure(Settings(redis_url=self.redis.url, database_url=self.db_url))  # type: ignore[union-attr]
 
         def answers() -> bool:

@@ -62,6 +62,9 @@ class Settings(BaseSettings):
     sweep_interval_s: float = Field(30.0, description="How often the sweeper runs.")
     task_max_retries: int = Field(5, description="Retries of a task after a transient error.")
     worker_concurrency: int = Field(1, description="Processes per worker (`citytherm worker`).")
+    worker_threads: int | None = Field(
+        None, description="Library threads per worker process (None: cores // concurrency; 0: no cap)."
+    )
 
 
 def get_settings() -> Settings:

@@ -15,7 +15,8 @@ sweeper (`citytherm.sweep`, every `sweep_interval_s`) finds lost work sooner fro
 
 Time limits (seconds, from `unit_timeout_s` = T): a building unit gets a soft limit of T (the unit
 then fails with `SoftTimeLimitExceeded`) and a hard limit of T + `grace_s(T)`; the sweeper takes a
-unit `running` for longer than that as lost. Prepare, finish and model imports get 4 T.
+unit `running` for longer than that as lost. Prepare, orientation windows, finish and model
+imports get 4 T.
 
 The sweeper runs from Celery beat: `citytherm worker --beat` embeds it in one worker (`-B`); run
 exactly one beat per deployment (a second one only sweeps twice: the sweep locks what it
@@ -42,6 +43,7 @@ SWEEP_QUEUE = "citytherm-sweep"
 TASK_NAMES = (
     "citytherm.import_model",
     "citytherm.prepare_job",
+    "citytherm.orient_window",
     "citytherm.run_unit",
     "citytherm.finish_job",
     "citytherm.sweep",
@@ -73,6 +75,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
             "max_retries": retries,
         },
         "citytherm.prepare_job": {**limits, "max_retries": retries},
+        "citytherm.orient_window": {**limits, "max_retries": retries},
         "citytherm.finish_job": {**limits, "max_retries": retries},
         "citytherm.import_model": {**limits, "max_retries": retries},
         "citytherm.sweep": {"soft_time_limit": 300.0, "time_limit": 360.0, "max_retries": 0},

@@ -50,11 +50,18 @@ from workers.pipeline.orientation.calibration import (
     calibrated_accuracy,
 )
 from workers.pipeline.orientation.mounting import calibration_report, mounting_document
-from workers.pipeline.orientation.sequence import SEQUENCE_PLATFORMS, SequenceOrientation, orient_sequence
+from workers.pipeline.orientation.sequence import (
+    SEQUENCE_PLATFORMS,
+    SequenceOrientation,
+    WindowMap,
+    orient_sequence,
+)
 from workers.pipeline.plan import near_buildings, plan_units, resolution_warning
+from workers.pipeline.reconstruction.combine import with_reconstruction
 from workers.pipeline.results import BuildingResult, output_radiometry
 from workers.pipeline.texture.texel import TexelOptions
 from workers.pipeline.units import BuildingUnit, Refiner, UnitOptions, run_building_unit
+from workers.pool import pool_map
 from workers.run_options import RunOptions
 
 #: progress callback: (stage, done, total); called with done == 0 when a stage starts.
@@ -279,9 +286,11 @@ def orient(
     options: RunOptions,
     progress: Progress = no_progress,
     caster: RayCaster | None = None,
+    map_windows: WindowMap | None = None,
 ) -> Oriented:
     """The orient stage: `orient_sequence` over every frame from the priors and accuracy of
-    `calibrated` (calibrated or the manifest's), against the buildings near the cameras (`caster`).
+    `calibrated` (calibrated or the manifest's), against the buildings near the cameras (`caster`);
+    its windows run through `map_windows` (default: `options.workers` processes, `pool.pool_map`).
 
     An orientation that raises is reported, not fatal: the units then refine from the priors.
     """
@@ -297,10 +306,16 @@ def orient(
         so = orient_sequence(
             ingested.manifest.camera, caster, frames, ingested.frames, prior, times, calibrated.accuracy,
             progress=lambda done, total: progress("orient", done, total),
+            map_windows=map_windows or pool_map(options.workers),
+        ) if options.orientation != "sfm" else None
+        so, method = with_reconstruction(  # `RunOptions.orientation`: edges, sfm or both
+            options.orientation, so, ingested.manifest.camera, caster, frames, ingested.frames, prior, times,
+            calibrated.accuracy,
         )
     except Exception as exc:  # reported in report.json: the job goes on
         return Oriented(None, {"run": False, "reason": f"failed: {type(exc).__name__}: {exc}"})
-    return Oriented(so, {"run": True, **so.to_dict("calibrated" if calibrated.accepted else "manifest")})
+    report = so.to_dict("calibrated" if calibrated.accepted else "manifest")
+    return Oriented(so, {"run": True, **report, **method})
 
 
 def unit_options(options: RunOptions, calibrated: Calibrated) -> UnitOptions:

@@ -1,24 +1,63 @@
-"""The process pool context of the in-process job (`citytherm run --workers N`): the building units
-(`workers.run.run_units`) and the split-half check (`workers.split_half`) share it."""
+"""The process pool context of the in-process job (`citytherm run --workers N`): the orient stage's
+windows (`pool_map`, `workers.job.orient`), the building units (`workers.run.run_units`) and the
+split-half check (`workers.split_half`) share it."""
 
 from __future__ import annotations
 
 import multiprocessing
 import multiprocessing.context
 import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
 
-#: thread-pool sizes of numerical libraries (OpenBLAS, OpenMP, TBB users such as Open3D, OpenCV)
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "TBB_NUM_THREADS")
+#: thread-pool sizes of numerical libraries read from the environment when they load (OpenMP,
+#: OpenBLAS, MKL, numexpr, OpenCV's pool); Open3D's TBB has none (`cap_library_threads`)
+LIBRARY_THREAD_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "OPENCV_FOR_THREADS_NUM",
+)
+#: the cap itself, for `cap_library_threads` in processes that start from this environment
+THREADS_VAR = "CITYTHERM_LIBRARY_THREADS"
+
+
+def library_thread_env(threads: int) -> dict[str, str]:
+    """The environment that caps the numerical libraries of a process started with it at
+    `threads` threads each (`threads >= 1`)."""
+    if threads < 1:
+        raise ValueError(f"library threads must be >= 1, got {threads}")
+    return {**dict.fromkeys(LIBRARY_THREAD_VARS, str(threads)), THREADS_VAR: str(threads)}
+
+
+def cap_library_threads() -> int | None:
+    """Apply the cap of `THREADS_VAR` (when set) to what can be capped at run time: OpenCV
+    (`cv2.setNumThreads`) and Open3D (`open3d.utility.set_max_threads`: TBB, which no environment
+    variable bounds). OpenBLAS and OpenMP take theirs from the environment when they load, so the
+    process must have started with `library_thread_env`. Returns the cap (None: none set)."""
+    value = os.environ.get(THREADS_VAR)
+    if not value:
+        return None
+    import cv2
+    import open3d
+
+    threads = int(value)
+    cv2.setNumThreads(threads)
+    open3d.utility.set_max_threads(threads)
+    return threads
 
 
 def pool_context(workers: int) -> multiprocessing.context.BaseContext:
     """`forkserver` where available (no fork of a process that may hold Open3D threads).
 
     Worker processes get thread pools of `cpu_count // workers` threads (set in the environment
-    the server starts with), so that `workers` processes do not oversubscribe the cores."""
-    threads = str(max(1, (os.cpu_count() or 1) // max(1, workers)))
-    for var in _THREAD_VARS:
-        os.environ.setdefault(var, threads)
+    the server starts with, unless set already), so that `workers` processes do not
+    oversubscribe the cores; `cap_library_threads` as a pool initializer caps Open3D too."""
+    threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+    for var, value in library_thread_env(threads).items():
+        os.environ.setdefault(var, value)
     methods = multiprocessing.get_all_start_methods()
     if "forkserver" not in methods:
         return multiprocessing.get_context("spawn")
@@ -26,3 +65,28 @@ def pool_context(workers: int) -> multiprocessing.context.BaseContext:
     # workers fork from a server that has already imported the pipeline and Open3D (~1 s each)
     ctx.set_forkserver_preload(["workers.pipeline.units", "open3d"])
     return ctx
+
+
+
+#: `map(function, items)` for independent, picklable tasks, results in item order
+TaskMap = Callable[[Callable[[Any], Any], Iterable[Any]], Iterator[Any]]
+
+
+def pool_map(workers: int) -> TaskMap:
+    """A `map` for independent, picklable tasks (the orient stage's windows): in this process for
+    `workers <= 1` or a single item, else in a process pool of up to `workers` processes in
+    `pool_context(workers)`, made for the call and shut down when its results are consumed (or
+    the iterator is closed). Results come in item order, each as soon as it and those before it
+    are done; the first task that raises raises here."""
+
+    def run(function: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
+        todo = list(items)
+        if workers <= 1 or len(todo) <= 1:
+            yield from map(function, todo)
+            return
+        ctx = pool_context(workers)
+        n = min(workers, len(todo))
+        with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=cap_library_threads) as pool:
+            yield from pool.map(function, todo)
+
+    return run

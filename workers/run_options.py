@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal
 
 from workers.pipeline.options import options_from_dict, options_to_dict
 from workers.pipeline.orientation.building import CoregisterOptions
@@ -29,6 +29,11 @@ class RunOptions:
         orient: with refinement, orient close-range sequences (drives, terrestrial) in blocks
             (feature tracks, bundle adjustment with the model) before the units, from the
             calibrated priors or the manifest's; the units then refine from those poses.
+        orientation: how the orient stage orients: `"edges"` the blocks with model edges and
+            planes (`orientation.sequence`), `"sfm"` the sequence's own reconstruction placed on
+            the GNSS/INS and coregistered to the facades (`reconstruction`, Hoegner & Stilla's
+            method 1), `"both"` the edge path's poses where its blocks confirmed them and the
+            reconstruction's for the frames it left unoriented.
         buildings: ids of the top-level buildings to texture (None: all the sequence sees).
         workers: processes for the building units in one process (`citytherm run`; 1: in this
             process).
@@ -42,10 +47,15 @@ class RunOptions:
     plan: PlanOptions = field(default_factory=PlanOptions)
     calibrate: bool = True
     orient: bool = True
+    orientation: Literal["edges", "sfm", "both"] = "edges"
     buildings: tuple[str, ...] | None = None
     workers: int = 1
     display: bool = True
     split_half: bool = False
+
+    def __post_init__(self) -> None:
+        if self.orientation not in ("edges", "sfm", "both"):
+            raise ValueError(f"orientation {self.orientation!r}: one of edges, sfm, both")
 
     @classmethod
     def build(

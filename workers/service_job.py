@@ -5,7 +5,8 @@ In: ids (job uuid as a string, building gml id, model import id), the settings o
 (job and unit states, results through `db.store`), files under `jobs/<job id>/`, further tasks.
 
 - `prepare_job`: the stages of `citytherm run` before the units (`workers.job`: ingest over the
-  model's buildings from PostGIS, calibrate, orient, plan); one pickled `BuildingUnit` per
+  model's buildings from PostGIS, calibrate, orient with its windows as tasks
+  (`workers.service_windows`), plan); one pickled `BuildingUnit` per
   building (`jobs/<id>/units/<name>.pkl`), what `finish` needs (`prepared.pkl`) and the
   manifest-only priors (`priors.pkl`, frame index -> `Pose`, for `frame_pose`); then one
   `job_unit` per building with the id of the task queued for it, and the tasks.
@@ -236,7 +237,9 @@ def _run_stages(job: jobs.JobRecord) -> tuple[Prepared, tuple[Any, ...], dict[in
         calibrated = calibrate(ingested, options)
     _stage(job.id, "orient")
     t0 = time.perf_counter()
-    oriented = orient(ingested, calibrated, options, caster=caster)
+    from workers.service_windows import celery_window_map  # it imports this module
+
+    oriented = orient(ingested, calibrated, options, caster=caster, map_windows=celery_window_map(job.id))
     if oriented.report.get("run"):
         timings["orient"] = time.perf_counter() - t0
     _stage(job.id, "plan")

@@ -1,5 +1,5 @@
 """The Celery tasks of the service (`docs/service.md`): thin wrappers, ids as arguments; the work
-is in `workers.service_job` and `workers.service_upkeep`.
+is in `workers.service_job`, `workers.service_windows` and `workers.service_upkeep`.
 
 Every task retries transient errors (`service_job.TRANSIENT`: database, broker, storage) with
 exponential backoff (jittered, at most 300 s apart), at most `Settings.task_max_retries` times
@@ -15,17 +15,22 @@ from typing import Any
 from celery import Task
 from celery.signals import worker_process_init
 
-from workers import service_job, service_upkeep
+from workers import service_job, service_upkeep, service_windows
 from workers.celery_app import app
+from workers.pool import cap_library_threads
 
 
 @worker_process_init.connect
 def preload(**_: Any) -> None:
     """Each pool process imports the pipeline and Open3D (about 3 s) when it starts, as
-    `citytherm run` preloads its process pool, so that no job waits for it."""
+    `citytherm run` preloads its process pool, so that no job waits for it; and caps the
+    threads of OpenCV and Open3D as `citytherm worker --threads` asked (`pool.cap_library_threads`;
+    OpenBLAS and OpenMP were capped by the environment the worker started with)."""
     import open3d  # noqa: F401
 
     import workers.pipeline.units  # noqa: F401
+
+    cap_library_threads()
 
 
 class ServiceTask(Task):
@@ -52,6 +57,12 @@ def import_model(import_id: int) -> str:
 def prepare_job(job_id: str) -> str:
     """Ingest, calibrate, orient and plan job `job_id`; queue its units."""
     return service_job.prepare_job(job_id)
+
+
+@app.task(base=ServiceTask, name="citytherm.orient_window")
+def orient_window(job_id: str, k: int) -> str:
+    """Run window `k` of job `job_id`'s sequence orientation (its prepare task merges them)."""
+    return service_windows.orient_window_task(job_id, int(k))
 
 
 @app.task(base=ServiceTask, bind=True, name="citytherm.run_unit")

@@ -101,6 +101,12 @@ class TextureInputs(BaseModel):
     orient: bool = Field(
         _DEFAULTS.orient, description="With refinement: orient drives in blocks before the buildings."
     )
+    orientation: Literal["edges", "sfm", "both"] = Field(
+        _DEFAULTS.orientation,
+        description="With the sequence orientation: edges (model edges and planes), sfm (the sequence's "
+        "own reconstruction, coregistered to the facades) or both (edges where confirmed, the "
+        "reconstruction elsewhere).",
+    )
     anomalies: bool = Field(
         True, description="Analyse the textures: windows, heat-leak candidates, facade figures."
     )
@@ -113,6 +119,7 @@ class TextureInputs(BaseModel):
             refine=self.refine,
             calibrate=self.calibrate,
             orient=self.orient,
+            orientation=self.orientation,
             anomalies=self.anomalies,
             buildings=tuple(self.buildings) if self.buildings else None,
         )

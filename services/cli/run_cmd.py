@@ -10,6 +10,7 @@ re-run replaces them."""
 
 from __future__ import annotations
 
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,14 @@ from workers.run import RunSummary, run_job
 
 #: the library's defaults are the command line's
 _DEFAULTS = RunOptions()
+
+
+class Orientation(StrEnum):
+    """`--orientation`: `RunOptions.orientation`."""
+
+    edges = "edges"
+    sfm = "sfm"
+    both = "both"
 
 _LABELS = {
     "ingest": "read model and package",
@@ -143,6 +152,13 @@ def run(
         help="With refinement: skip the sequence orientation of drives and terrestrial sequences "
         "(feature tracks and a block adjustment of all frames with the model before the buildings).",
     ),
+    orientation: Orientation = typer.Option(
+        Orientation(_DEFAULTS.orientation),
+        "--orientation",
+        help="With the sequence orientation: edges = blocks with model edges and planes; sfm = the "
+        "sequence's own pycolmap reconstruction placed on the GNSS/INS and coregistered to the "
+        "facades; both = edges where confirmed, the reconstruction for the frames they leave.",
+    ),
     no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
     no_anomalies: bool = typer.Option(
         False,
@@ -187,6 +203,7 @@ def run(
         workers=workers,
         calibrate=not no_calibrate,
         orient=not no_orient,
+        orientation=orientation.value,
         display=not no_display,
         split_half=split_half,
     )

@@ -27,6 +27,12 @@ block not confirmed is rejected. A frame taken keeps the adjusted pose and its c
 units decide whether it is determined well enough). A frame in two windows takes the pose of the
 one where it lies further from the window's ends.
 
+Windows as tasks (issue 18): `plan_windows` cuts the sequence into picklable `WindowTask`s,
+`orient_window` (`sequence_windows`) adjusts and confirms one window as a pure function of its
+task, and `merge_windows` applies the rule above to the results in any order. `orient_sequence`
+runs them through its `map_windows` argument: the built-in `map` here, a process pool
+(`citytherm run --workers N`) or Celery tasks (the service) give the same orientation.
+
 Calibrated or not (issue 19): after an accepted sequence calibration the priors carry a common
 error of decimetres and white noise; without one (a close-range sequence the calibration
 rejects: "too few frames see the model") they are the manifest's GNSS/INS poses, common error
@@ -46,7 +52,8 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-from collections.abc import Callable, Mapping, Sequence
+import uuid
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -55,16 +62,11 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.manifest import Accuracy, FrameSource
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.orientation.block import (
-    BlockOptions,
-    UnitSequence,
-    adjust_block,
-    block_reason,
-)
+from workers.pipeline.orientation.block import BlockOptions, UnitSequence
 from workers.pipeline.orientation.building_options import CoregisterOptions
-from workers.pipeline.orientation.bundle import BundleResult
-from workers.pipeline.orientation.priors import frame_noise_information, prior_information
-from workers.pipeline.orientation.sequence_acceptance import Confirmation, ConfirmOptions, confirm_block
+from workers.pipeline.orientation.priors import prior_information
+from workers.pipeline.orientation.sequence_acceptance import ConfirmOptions
+from workers.pipeline.orientation.sequence_windows import WindowResult, WindowTask, orient_window
 from workers.pipeline.orientation.smoothing import prior_noise, smooth_poses
 from workers.pipeline.orientation.tracks import Tracks
 from workers.pipeline.orientation.wireframe import WireframeError, mesh_wireframe
@@ -74,7 +76,14 @@ __all__ = [
     "SequenceOrientation",
     "SequenceOrientationOptions",
     "UnitSequence",
+    "WindowMap",
+    "WindowPlan",
+    "WindowResult",
+    "WindowTask",
+    "merge_windows",
     "orient_sequence",
+    "orient_window",
+    "plan_windows",
 ]
 
 #: platforms whose sequences are oriented in blocks before the units (close range: a frame alone
@@ -204,6 +213,94 @@ def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list
     return out
 
 
+#: how windows run: `map(orient_window, tasks)` in task order (built-in `map`, a process pool's
+#: `Executor.map`, ...); the results may arrive lazily
+WindowMap = Callable[[Callable[[WindowTask], WindowResult], Iterable[WindowTask]], Iterable[WindowResult]]
+
+
+@dataclass(frozen=True, eq=False)
+class WindowPlan:
+    """The windows of a sequence as independent tasks (`plan_windows`).
+
+    Attributes:
+        frames: every frame index in recording order.
+        prior: the prior pose per frame (world = model CRS).
+        tasks: one `WindowTask` per window, in order (empty: nothing to orient).
+        prior_noise: the priors' white noise figures (`SequenceOrientation.prior_noise`).
+    """
+
+    frames: tuple[int, ...]
+    prior: dict[int, Pose]
+    tasks: tuple[WindowTask, ...]
+    prior_noise: dict
+
+
+def plan_windows(
+    camera: Camera,
+    raycaster: RayCaster,
+    frames: Sequence[int],
+    frame_source: FrameSource,
+    prior: Mapping[int, Pose],
+    times: Mapping[int, float],
+    accuracy: Accuracy | None,
+    options: SequenceOrientationOptions = SequenceOrientationOptions(),
+) -> WindowPlan:
+    """Cut the sequence into windows (`windows`), each a `WindowTask` with its start poses and
+    prior information; no tasks when the scene has no wireframe or there are fewer than 2 frames.
+    Arguments as `orient_sequence`."""
+    frames = [int(f) for f in frames]
+    base = {f: prior[f] for f in frames}
+    scene_wf = None
+    with contextlib.suppress(WireframeError):
+        scene_wf = mesh_wireframe(raycaster.mesh, options.coregister.edges)
+    if scene_wf is None or len(frames) < 2:
+        return WindowPlan(tuple(frames), base, (), {})
+    start, options, noise = _start_poses(prior, frames, times, options)
+    key = uuid.uuid4().hex
+    tasks = []
+    for k, (a, b) in enumerate(windows([times[f] for f in frames], options)):
+        block = frames[a:b]
+        info = prior_information(prior[block[len(block) // 2]], accuracy, options.coregister)
+        own_prior, own_start = {f: base[f] for f in block}, {f: start[f] for f in block}
+        task = WindowTask(k, camera, tuple(block), frame_source, own_prior, own_start, info, options, key,
+                          raycaster.mesh, raycaster, scene_wf)  # fmt: skip
+        tasks.append(task)
+    return WindowPlan(tuple(frames), base, tuple(tasks), noise)
+
+
+def merge_windows(plan: WindowPlan, results: Iterable[WindowResult]) -> SequenceOrientation:
+    """The sequence orientation from the windows' results (any order): a frame taken by several
+    windows gets the pose of the one where it lies furthest from the window's ends (the later
+    window on a tie), and its tie observations from that window (the overlapping windows tracked
+    the same points again)."""
+    done = {r.index: r for r in results}
+    missing = [t.index for t in plan.tasks if t.index not in done]
+    if missing:
+        raise ValueError(f"windows {missing} of {len(plan.tasks)} have no result")
+    poses = dict(plan.prior)
+    covariance: dict[int, np.ndarray] = {}
+    ties: dict[int, int] = {}
+    tie_rms: dict[int, float] = {}
+    best: dict[int, int] = {}  # depth of each frame in the window that owns it
+    owner: dict[int, int] = {}
+    ordered = [done[t.index] for t in plan.tasks]
+    for r in ordered:
+        for k, f in enumerate(r.frames):
+            depth = min(k, len(r.frames) - 1 - k)
+            if f in r.poses and depth >= best.get(f, -1):
+                best[f], owner[f] = depth, r.index
+                poses[f], covariance[f] = r.poses[f], r.covariance[f]
+                ties[f], tie_rms[f] = r.ties[f], r.tie_rms_px[f]
+    kept = [
+        r.tracks.subset(np.array([owner.get(int(f)) == r.index for f in r.tracks.frame], bool))
+        for r in ordered
+        if r.tracks is not None
+    ]
+    blocks = [r.summary for r in ordered]
+    tracks = Tracks.concat(kept)
+    return SequenceOrientation(poses, covariance, blocks, tracks, ties, tie_rms, plan.prior_noise)
+
+
 def orient_sequence(
     camera: Camera,
     raycaster: RayCaster,
@@ -214,91 +311,37 @@ def orient_sequence(
     accuracy: Accuracy | None,
     options: SequenceOrientationOptions = SequenceOrientationOptions(),
     progress: Callable[[int, int], None] | None = None,
+    map_windows: WindowMap = map,
 ) -> SequenceOrientation:
-    """Orient every frame of the sequence in blocks (see the module docstring).
+    """Orient every frame of the sequence in blocks (see the module docstring): `plan_windows`,
+    `orient_window` over the windows through `map_windows`, `merge_windows`.
 
     Args:
         camera: interior orientation.
         raycaster: the buildings near the cameras (model planes, hidden-edge removal).
         frames: frame indices in recording order.
-        frame_source: `load(i) -> (H, W)` float32 physical values.
+        frame_source: `load(i) -> (H, W)` float32 physical values (picklable when `map_windows`
+            runs in other processes).
         prior: (calibrated) prior camera pose per frame (world = model CRS).
         times: frame times in seconds.
         accuracy: a-priori σ of the priors (calibrated accuracy, or the manifest's).
         options: parameters.
-        progress: called with (windows done, windows) after each window.
+        progress: called with (windows done, windows) before the first and after each window.
+        map_windows: runs the windows (`WindowMap`): the built-in `map` here, one after the other;
+            a process pool's `map` gives the same result.
     """
-    frames = [int(f) for f in frames]
-    poses = {f: prior[f] for f in frames}
-    covariance: dict[int, np.ndarray] = {}
-    blocks: list[dict] = []
-    parts: dict[int, Tracks] = {}
-    owner: dict[int, int] = {}
-    ties: dict[int, int] = {}
-    tie_rms: dict[int, float] = {}
-    scene_wf = None
-    with contextlib.suppress(WireframeError):
-        scene_wf = mesh_wireframe(raycaster.mesh, options.coregister.edges)
-    if scene_wf is None or len(frames) < 2:
-        return SequenceOrientation(poses, covariance, blocks, Tracks.empty())
-    # position of each frame in the window that owns it: distance to the window's ends
-    best: dict[int, int] = {}
-    start, options, noise = _start_poses(prior, frames, times, options)
-    co = options.coregister
-    spans = windows([times[f] for f in frames], options)
-    for k_win, (a, b) in enumerate(spans):
-        if progress is not None:
-            progress(k_win, len(spans))
-        block = frames[a:b]
-        images = {f: frame_source.load(f) for f in block}
-        info = prior_information(prior[block[len(block) // 2]], accuracy, co)
-        frame_info = frame_noise_information(co.prior)
-        res, tracks = adjust_block(
-            camera,
-            scene_wf,
-            raycaster,
-            block,
-            images,
-            prior,
-            start,
-            info,
-            options.block,
-            co.fit,
-            co.edges,
-            co.features,
-            co.prior,
-        )
-        conf = confirm_block(
-            camera,
-            block,
-            prior,
-            res,
-            tracks,
-            frame_info,
-            options.block,
-            options.confirm,
-            options.block.bundle,
-        )
-        reason = block_reason(block, prior, res, options.block, need_edges=False) or conf.reason
-        taken = [f for f in block if conf.taken[f] and not reason]
-        blocks.append(_block_summary(block, res, tracks, conf, reason))
-        if reason:
-            continue
-        for k, f in enumerate(block):
-            depth = min(k, len(block) - 1 - k)
-            if f in taken and depth >= best.get(f, -1):
-                best[f] = depth
-                owner[f] = k_win
-                poses[f] = res.poses[f]
-                covariance[f] = res.covariance[f]
-                ties[f], tie_rms[f] = res.ties[f], res.tie_rms_px[f]
-        parts[k_win] = tracks.with_points(res.points)
+    plan = plan_windows(camera, raycaster, frames, frame_source, prior, times, accuracy, options)
+    if not plan.tasks:
+        return SequenceOrientation(dict(plan.prior), {}, [], Tracks.empty())
+    n = len(plan.tasks)
+    results = []
     if progress is not None:
-        progress(len(spans), len(spans))
-    # each frame's tie observations from the window its pose came from (overlapping windows track
-    # the same points again)
-    kept = [t.subset(np.array([owner.get(int(f)) == w for f in t.frame], bool)) for w, t in parts.items()]
-    return SequenceOrientation(poses, covariance, blocks, Tracks.concat(kept), ties, tie_rms, noise)
+        progress(0, n)
+    for k, r in enumerate(map_windows(orient_window, plan.tasks)):
+        results.append(r)
+        if progress is not None:
+            progress(k + 1, n)
+    return merge_windows(plan, results)
 
 
 def _start_poses(
@@ -331,29 +374,3 @@ def _start_poses(
         options, coregister=replace(co, prior=pr), block=replace(options.block, retrack_sigma0=0.0)
     )
     return smooth_poses(prior, frames, times, options.start_smoothing_s), noisy_options, figures
-
-
-def _block_summary(
-    block: list[int], res: BundleResult, tracks: Tracks, conf: Confirmation, reason: str
-) -> dict:
-    """One window's entry of `SequenceOrientation.blocks` (see there)."""
-    anchor = conf.anchor
-    sup = [res.edge_support[f] for f in block if f in res.edge_support]
-    nul = [res.null_support[f] for f in block if f in res.null_support]
-    return {
-        "frames": [block[0], block[-1]],
-        "accepted": not reason,
-        "reason": reason,
-        "frames_anchored": sum(1 for f in block if anchor.get(f)),
-        "frames_without_edges_around": sum(1 for f in block if anchor.get(f, False) is None),
-        "mean_edge_support": round(float(np.mean(sup)), 3) if sup else None,
-        "null_support": round(float(np.mean(nul)), 3) if nul else None,
-        "sigma0": round(float(res.sigma0), 3),
-        "tracks": int(tracks.n_tracks),
-        "tie_observations": int(np.sum(res.inlier)),
-        "frames_confirmed_by_planes": len(conf.by_planes),
-        "frames_inconsistent_with_priors": len(conf.inconsistent),
-        "frames_undetermined": len(conf.undetermined),
-        "plane_rms_m": round(conf.plane_rms_m, 3) if np.isfinite(conf.plane_rms_m) else None,
-        "frames_taken": sum(1 for f in block if conf.taken[f] and not reason),
-    }

@@ -33,6 +33,7 @@ from workers.pipeline.geometry.polygons import fit_plane, open_ring, surface_axe
 from workers.pipeline.synth.anomaly import Anomaly, Window, half_max_outline, wall_windows
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.shapes import footprint_corners, point_inside
+from workers.pipeline.synth.value_noise import value_noise
 
 WALL, ROOF, OTHER = 0, 1, 2
 _CLASS_CODE = {"WallSurface": WALL, "RoofSurface": ROOF}
@@ -75,6 +76,9 @@ class ThermalOptions:
     leak_sigma_m: tuple[float, float] = (0.3, 0.8)
     leak_roof_share: float = 0.25  # share of leaks placed on roofs
     features: bool = True  # False: base temperatures only (flat surfaces, for geometry tests)
+    facade_details: bool = True  # False: no windows, slabs, corners, pipes (homogeneous walls)
+    facade_noise_k: float = 0.0  # fine random texture fixed on every surface (value noise), K
+    facade_noise_cell_m: float = 0.25  # its cell size
 
 
 def _class_code(poly: Polygon, normal: np.ndarray) -> int:
@@ -405,7 +409,11 @@ class ThermalScene:
         for j in range(self._n_sin):
             T += amp * np.sin(g[9 + 3 * j] * s + g[10 + 3 * j] * v + g[11 + 3 * j])
         wt = g[9 + 3 * self._n_sin :]
-        T += self._wall_terms(s, v, wt)
+        if o.facade_noise_k > 0:
+            cell = np.float32(o.facade_noise_cell_m)
+            T += np.float32(o.facade_noise_k) * value_noise(s / cell, v / cell, p)
+        if o.facade_details:
+            T += self._wall_terms(s, v, wt)
         il = np.flatnonzero(wt[12] > 0)
         if len(il):
             lk = np.take(self._leak, p[il], axis=1, mode="clip")

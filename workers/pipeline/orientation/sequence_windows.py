@@ -1,0 +1,193 @@
+"""One window of the sequence orientation as an independent, picklable task (issue 18, item 3).
+
+`sequence.plan_windows` cuts a sequence into `WindowTask`s; `orient_window(task)` adjusts one
+window as a block and decides which of its frames take the adjusted poses; `sequence.merge_windows`
+gives every frame the pose of the window where it lies furthest from the ends. The windows do not
+depend on each other (each starts from the priors, or the smoothed priors, never from a
+neighbour's result), so they may run in any order, in this process, in a process pool
+(`citytherm run --workers N`) or as Celery tasks on other machines (the service), and give the
+same result as one after the other.
+
+A task pickles without its ray caster (an Open3D scene, not picklable): it carries the scene mesh
+and rebuilds the caster once per process and plan (`WindowTask.scene`), keyed by the plan's
+`scene_key`. In the process that planned it the caster and the scene wireframe are the planner's
+own objects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.manifest import FrameSource
+from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.raycast import RayCaster, SceneMesh
+from workers.pipeline.orientation.block import adjust_block, block_reason
+from workers.pipeline.orientation.bundle import BundleResult
+from workers.pipeline.orientation.priors import frame_noise_information
+from workers.pipeline.orientation.sequence_acceptance import Confirmation, confirm_block
+from workers.pipeline.orientation.tracks import Tracks
+from workers.pipeline.orientation.wireframe import Wireframe, mesh_wireframe
+
+if TYPE_CHECKING:
+    from workers.pipeline.orientation.sequence import SequenceOrientationOptions
+
+__all__ = ["WindowResult", "WindowTask", "orient_window"]
+
+#: per process: the scene of the last plan whose windows ran here, `(scene_key, caster, wireframe)`
+_SCENE: list[tuple[str, RayCaster, Wireframe]] = []
+
+
+@dataclass(frozen=True, eq=False)
+class WindowTask:
+    """Everything one window's block needs (picklable; see the module docstring).
+
+    Attributes:
+        index: the window's position in the plan (0-based).
+        camera: interior orientation.
+        frames: the window's frame indices in recording order.
+        frame_source: `load(i) -> (H, W)` float32 physical values.
+        prior: the window's prior camera poses (world = model CRS), `camera_from_world` as `Pose`.
+        start: the poses tracking and adjustment start from (the priors, or the smoothed priors).
+        info: `(6, 6)` information of the block's common prior error (`priors.prior_information`
+            of the window's middle frame).
+        options: the sequence options as the window runs them (the noisy-prior variant included).
+        scene_key: identifies the plan's scene mesh (the per-process caster cache key).
+        mesh: the buildings near the cameras (model CRS, local origin).
+        caster, wireframe: the planner's ray caster over `mesh` and its wireframe; not pickled.
+    """
+
+    index: int
+    camera: Camera
+    frames: tuple[int, ...]
+    frame_source: FrameSource
+    prior: dict[int, Pose]
+    start: dict[int, Pose]
+    info: np.ndarray
+    options: SequenceOrientationOptions
+    scene_key: str
+    mesh: SceneMesh
+    caster: RayCaster | None = field(default=None, repr=False)
+    wireframe: Wireframe | None = field(default=None, repr=False)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled without the ray caster and wireframe (rebuilt from `mesh` where it runs)."""
+        state = dict(self.__dict__)
+        state["caster"] = state["wireframe"] = None
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+
+    def scene(self) -> tuple[RayCaster, Wireframe]:
+        """The ray caster over `mesh` and its wireframe: the planner's, else built once per
+        process and plan."""
+        if self.caster is not None and self.wireframe is not None:
+            return self.caster, self.wireframe
+        if not _SCENE or _SCENE[0][0] != self.scene_key:
+            caster = RayCaster(self.mesh)
+            _SCENE[:] = [(self.scene_key, caster, mesh_wireframe(self.mesh, self.options.coregister.edges))]
+        return _SCENE[0][1], _SCENE[0][2]
+
+
+@dataclass(frozen=True, eq=False)
+class WindowResult:
+    """One window's outcome (picklable).
+
+    Attributes:
+        index: the window's position in the plan.
+        frames: the window's frames in recording order.
+        summary: its entry of `SequenceOrientation.blocks`.
+        poses, covariance: adjusted pose and `(6, 6)` covariance of each frame taken (empty when
+            the block was rejected).
+        ties, tie_rms_px: inlier tie observations of each frame taken and their RMS (px).
+        tracks: the block's tracks with the adjusted points (None when rejected).
+    """
+
+    index: int
+    frames: tuple[int, ...]
+    summary: dict
+    poses: dict[int, Pose]
+    covariance: dict[int, np.ndarray]
+    ties: dict[int, int]
+    tie_rms_px: dict[int, float]
+    tracks: Tracks | None
+
+    @property
+    def accepted(self) -> bool:
+        """True when the block was confirmed (its taken frames may take its poses)."""
+        return self.tracks is not None
+
+
+def orient_window(task: WindowTask) -> WindowResult:
+    """Adjust one window as a block (`block.adjust_block`) and confirm its frames
+    (`sequence_acceptance.confirm_block`); a pure function of `task`."""
+    caster, scene_wf = task.scene()
+    options, co = task.options, task.options.coregister
+    block = list(task.frames)
+    images = {f: task.frame_source.load(f) for f in block}
+    res, tracks = adjust_block(
+        task.camera,
+        scene_wf,
+        caster,
+        block,
+        images,
+        task.prior,
+        task.start,
+        task.info,
+        options.block,
+        co.fit,
+        co.edges,
+        co.features,
+        co.prior,
+    )
+    frame_info = frame_noise_information(co.prior)
+    conf = confirm_block(
+        task.camera, block, task.prior, res, tracks, frame_info, options.block, options.confirm,
+        options.block.bundle,
+    )  # fmt: skip
+    reason = block_reason(block, task.prior, res, options.block, need_edges=False) or conf.reason
+    summary = _block_summary(block, res, tracks, conf, reason)
+    if reason:
+        return WindowResult(task.index, task.frames, summary, {}, {}, {}, {}, None)
+    taken = [f for f in block if conf.taken[f]]
+    return WindowResult(
+        task.index,
+        task.frames,
+        summary,
+        {f: res.poses[f] for f in taken},
+        {f: res.covariance[f] for f in taken},
+        {f: res.ties[f] for f in taken},
+        {f: res.tie_rms_px[f] for f in taken},
+        tracks.with_points(res.points),
+    )
+
+
+def _block_summary(
+    block: Sequence[int], res: BundleResult, tracks: Tracks, conf: Confirmation, reason: str
+) -> dict:
+    """One window's entry of `SequenceOrientation.blocks` (see there)."""
+    anchor = conf.anchor
+    sup = [res.edge_support[f] for f in block if f in res.edge_support]
+    nul = [res.null_support[f] for f in block if f in res.null_support]
+    return {
+        "frames": [block[0], block[-1]],
+        "accepted": not reason,
+        "reason": reason,
+        "frames_anchored": sum(1 for f in block if anchor.get(f)),
+        "frames_without_edges_around": sum(1 for f in block if anchor.get(f, False) is None),
+        "mean_edge_support": round(float(np.mean(sup)), 3) if sup else None,
+        "null_support": round(float(np.mean(nul)), 3) if nul else None,
+        "sigma0": round(float(res.sigma0), 3),
+        "tracks": int(tracks.n_tracks),
+        "tie_observations": int(np.sum(res.inlier)),
+        "frames_confirmed_by_planes": len(conf.by_planes),
+        "frames_inconsistent_with_priors": len(conf.inconsistent),
+        "frames_undetermined": len(conf.undetermined),
+        "plane_rms_m": round(conf.plane_rms_m, 3) if np.isfinite(conf.plane_rms_m) else None,
+        "frames_taken": sum(1 for f in block if conf.taken[f] and not reason),
+    }

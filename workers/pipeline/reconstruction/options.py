@@ -1,0 +1,96 @@
+"""Parameters of the reconstruction-based orientation (`orient.orient_reconstruction`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from workers.pipeline.orientation.tracks import TrackOptions
+
+
+@dataclass(frozen=True)
+class ReconstructionOptions:
+    """Parameters of Hoegner & Stilla's method 1 (metres, degrees, pixels, seconds).
+
+    Attributes:
+        tracks: the LK tracker's options (`orientation.tracks.track_sequence`).
+        min_observations_per_frame, low_texture_ratio: when the tracks give fewer observations
+            per frame than this, the run is tracked again with the tracker's salience ratio
+            lowered to `low_texture_ratio`: on a facade textured all over (render, brick) the
+            frame's median texture is the facade's own and 10 × it found no point at all on the
+            homogeneous bench scene (3: 119 tracks on 12 frames, all within 1 px of the truth);
+            on facades with windows the lower ratio adds weaker, less reliable tracks (a facade
+            walk: σ0 0.66 px instead of 0.11), so it is the fallback, not the default.
+        max_gap_s: a time step longer than this splits the sequence into separate
+            reconstructions (tracks do not survive a gap).
+        start_smoothing_s, noisy_factor, frame_sigma_m, frame_sigma_deg: the start poses of
+            tracking and triangulation are the priors smoothed over `start_smoothing_s` (Gaussian
+            σ, seconds) when the priors' white noise (`smoothing.prior_noise`) exceeds
+            `noisy_factor` × (`frame_sigma_m`, `frame_sigma_deg`); else the priors themselves.
+        min_track_length: observations a track needs to be triangulated.
+        min_depth_m: a triangulated point closer than this to (or behind) a camera observing it
+            is dropped (an ill-conditioned intersection).
+        min_angle_deg: smallest largest-angle between the rays of a track to triangulate it.
+        ba_loss_px: scale of the Cauchy loss of pycolmap's bundle adjustment (px).
+        ba_iterations: its iteration limit; `ba_rounds`: adjustments, each after dropping the
+            observations beyond `max_reprojection_px` of the previous one.
+        max_reprojection_px: an observation beyond this after an adjustment is dropped.
+        max_sigma0_px: a reconstruction whose reprojection σ0 exceeds this is rejected.
+        min_frame_points: a frame needs this many adjusted points to count as registered.
+        min_shared_points: frames sharing this many points belong to the same connected part;
+            each part is placed on its own (`colmap.components`).
+        placement_loss_m: Huber scale of the camera centres' fit to the GNSS/INS positions.
+        plane_max_distance_m, plane_max_angle_deg: a point is assigned to the model plane its
+            observing ray hits when it lies within this distance of it along the ray and its
+            local normal (PCA of `normal_neighbours` nearest points) lies within this angle of
+            the plane's normal (points whose neighbourhood is not planar keep the ray's test only).
+        plane_loss_m: soft-L1 scale of the point-to-plane distances.
+        plane_rounds: assignment + fit rounds.
+        min_plane_points: fewer assigned points leave the GNSS/INS placement as it is.
+        scale_sigma: floor of the a-priori σ of the placement's log scale (its own standard error
+            from the camera centres is used where larger: planes that meet in one point leave
+            the scale to the GNSS/INS).
+        prior_sigma_m, prior_sigma_deg: a-priori σ of the placement's shift and rotation when the
+            accuracy of the priors is not given.
+        max_disagreement_px: `--orientation both`: a frame the edge path oriented takes the
+            reconstruction's pose where the two disagree by more than this (px, median over
+            the frames of its edge block; `combine`) and the reconstruction's facades fixed
+            both horizontal shift directions there.
+        min_normal_spread: the facades fix both horizontal shift directions when the smallest
+            eigenvalue of the assigned points' mean horizontal `n nᵀ` reaches this
+            (`planes.normals_span`).
+    """
+
+    tracks: TrackOptions = field(default_factory=TrackOptions)
+    min_observations_per_frame: float = 15.0
+    low_texture_ratio: float = 3.0
+    max_gap_s: float = 1.0
+    start_smoothing_s: float = 1.0
+    noisy_factor: float = 1.5
+    frame_sigma_m: float = 0.3
+    frame_sigma_deg: float = 0.3
+    min_track_length: int = 3
+    min_depth_m: float = 0.5
+    min_angle_deg: float = 0.5
+    ba_loss_px: float = 1.0
+    ba_iterations: int = 100
+    ba_rounds: int = 2
+    max_reprojection_px: float = 3.0
+    max_sigma0_px: float = 2.0
+    min_frame_points: int = 8
+    min_shared_points: int = 5
+    placement_loss_m: float = 0.5
+    plane_max_distance_m: float = 1.0
+    plane_max_angle_deg: float = 20.0
+    normal_neighbours: int = 8
+    plane_loss_m: float = 0.05
+    plane_rounds: int = 3
+    min_plane_points: int = 20
+    scale_sigma: float = 0.001
+    prior_sigma_m: float = 1.0
+    prior_sigma_deg: float = 1.0
+    max_disagreement_px: float = 5.0
+    min_normal_spread: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.min_track_length < 2 or self.ba_rounds < 1 or self.plane_rounds < 1:
+            raise ValueError("min_track_length >= 2, ba_rounds >= 1 and plane_rounds >= 1 required")
