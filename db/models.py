@@ -44,6 +44,8 @@ from sqlalchemy import (
 from sqlalchemy.dialects.postgresql import ARRAY, JSONB
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
+from db.api_scopes import API_SCOPES  # noqa: F401  (re-exported: API key scopes)
+
 #: Job and job unit states (OGC API Processes).
 JOB_STATUSES: tuple[str, ...] = ("accepted", "running", "successful", "failed", "dismissed")
 #: `surface_data.kind` values (CityGML `_SurfaceData` subtypes).
@@ -477,10 +479,6 @@ class ThermalAnomaly(Base):
     frames: Mapped[int | None] = mapped_column(Integer)
     best_resolution_m: Mapped[float | None] = mapped_column(Double)
     confidence: Mapped[float | None] = mapped_column(Double)
-
-
-#: API key scopes: `read` (GET), `submit` (uploads, jobs), `admin` (keys, deletion, paths).
-API_SCOPES: tuple[str, ...] = ("read", "submit", "admin")
 
 
 class ApiKey(Base):

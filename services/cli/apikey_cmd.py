@@ -14,25 +14,28 @@ models, registering packages by path). The database is `CITYTHERM_DATABASE_URL` 
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
 from rich.table import Table
-from sqlalchemy.exc import SQLAlchemyError
-from sqlalchemy.orm import Session
 
-from db.errors import NotFoundError
-from db.models import API_SCOPES
-from db.service_records import create_api_key, list_api_keys, revoke_api_key
-from db.session import make_engine
+from db.api_scopes import API_SCOPES
 from db.settings import get_settings
 from services.cli.db_cmd import DbUrl
 from services.cli.results_cmd import database_error
+
+if TYPE_CHECKING:  # the ORM is loaded when a command runs, not for every `citytherm` start
+    from sqlalchemy.orm import Session
 
 apikey_app = typer.Typer(help="API keys of the HTTP API (bearer tokens with scopes).", no_args_is_help=True)
 
 
 def _session(database_url: str | None) -> Session:
+    from sqlalchemy.orm import Session
+
+    from db.session import make_engine
+
     return Session(make_engine(database_url or get_settings().database_url))
 
 
@@ -48,6 +51,10 @@ def create_cmd(
     if bad:
         console.print(f"[red]error:[/] --scope {bad[0]!r}: expected one of {', '.join(API_SCOPES)}")
         raise typer.Exit(code=2)
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from db.service_records import create_api_key
+
     try:
         with _session(database_url) as session:
             info, key = create_api_key(session, name=name or "key", scopes=scope)
@@ -64,6 +71,10 @@ def list_cmd(
     as_json: bool = typer.Option(False, "--json", help="JSON for scripts."), database_url: str | None = DbUrl
 ) -> None:
     """List the API keys (never the keys themselves: their first characters)."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from db.service_records import list_api_keys
+
     console = Console()
     try:
         with _session(database_url) as session:
@@ -102,6 +113,11 @@ def list_cmd(
 def revoke_cmd(key_id: int = typer.Argument(..., help="The key's id (`citytherm apikey list`)."),
                database_url: str | None = DbUrl) -> None:  # fmt: skip
     """Revoke an API key: requests with it get 401 from then on."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from db.errors import NotFoundError
+    from db.service_records import revoke_api_key
+
     console = Console()
     try:
         with _session(database_url) as session:
