@@ -38,7 +38,7 @@ from workers.job import (
 )
 from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.units import BuildingUnit, Refiner
-from workers.pool import pool_context
+from workers.pool import cap_library_threads, pool_context
 from workers.split_half import split_half_report
 
 
@@ -81,7 +81,8 @@ def run_units(
         for u in units:
             yield run_unit(u, refiner)
         return
-    with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=pool_context(workers)) as pool:
+    n, ctx = min(workers, len(units)), pool_context(workers)
+    with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=cap_library_threads) as pool:
         # largest units first: better load balance
         order = sorted(range(len(units)), key=lambda k: -len(units[k].frames))
         futures = [pool.submit(run_unit, units[k], refiner) for k in order]
