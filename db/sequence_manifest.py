@@ -31,6 +31,7 @@ from workers.pipeline.geometry.manifest import (
     ImuSamples,
     Mounting,
     Radiometry,
+    SecondCamera,
     SequenceManifest,
 )
 
@@ -116,23 +117,23 @@ def _existing_file(root: Path, name: str, field: str) -> Path:
 
 
 # -- sections ------------------------------------------------------------------------------------
-def _camera(d: Any) -> Camera:
+def _camera(d: Any, path: str = "camera") -> Camera:
     if not isinstance(d, Mapping):
-        raise PackageError("camera", "expected a JSON object")
+        raise PackageError(path, "expected a JSON object")
     model = d.get("model", "OPENCV")
     if model != "OPENCV":
-        raise PackageError("camera.model", f"{model!r} is not 'OPENCV'")
+        raise PackageError(f"{path}.model", f"{model!r} is not 'OPENCV'")
     kw: dict[str, Any] = {}
     for k in ("width", "height"):
-        v = _number(_get(d, k, "camera"), f"camera.{k}")
+        v = _number(_get(d, k, path), f"{path}.{k}")
         if v != int(v) or v < 1:
-            raise PackageError(f"camera.{k}", f"expected a positive integer, got {d[k]!r}")
+            raise PackageError(f"{path}.{k}", f"expected a positive integer, got {d[k]!r}")
         kw[k] = int(v)
     for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"):
-        kw[k] = _number(_get(d, k, "camera"), f"camera.{k}")
+        kw[k] = _number(_get(d, k, path), f"{path}.{k}")
     for k in ("fx", "fy"):
         if kw[k] <= 0:
-            raise PackageError(f"camera.{k}", f"focal length must be positive, got {kw[k]!r}")
+            raise PackageError(f"{path}.{k}", f"focal length must be positive, got {kw[k]!r}")
     return Camera(**kw)
 
 
@@ -154,34 +155,34 @@ def check_orthonormal(M: np.ndarray, field: str) -> None:
         raise PackageError(field, f"not a rotation matrix (det = {det:.9g}, |MᵀM − I| = {off:.3g})")
 
 
-def _mounting(d: Any) -> Mounting:
-    raw = _get(d, "camera_to_body", "mounting")
+def _mounting(d: Any, path: str = "mounting") -> Mounting:
+    raw = _get(d, "camera_to_body", path)
     if not isinstance(raw, list) or len(raw) != 3:
-        raise PackageError("mounting.camera_to_body", "expected a 3x3 array (3 rows)")
-    M = np.stack([_vector(row, 3, f"mounting.camera_to_body[{i}]") for i, row in enumerate(raw)])
-    check_orthonormal(M, "mounting.camera_to_body")
+        raise PackageError(f"{path}.camera_to_body", "expected a 3x3 array (3 rows)")
+    M = np.stack([_vector(row, 3, f"{path}.camera_to_body[{i}]") for i, row in enumerate(raw)])
+    check_orthonormal(M, f"{path}.camera_to_body")
     return Mounting(
         camera_to_body=M,
-        boresight_deg=_vector(_get(d, "boresight_deg", "mounting"), 3, "mounting.boresight_deg"),
-        lever_arm_m=_vector(_get(d, "lever_arm_m", "mounting"), 3, "mounting.lever_arm_m"),
+        boresight_deg=_vector(_get(d, "boresight_deg", path), 3, f"{path}.boresight_deg"),
+        lever_arm_m=_vector(_get(d, "lever_arm_m", path), 3, f"{path}.lever_arm_m"),
     )
 
 
-def _accuracy(d: Any) -> Accuracy:
-    pos = _num_or_vector(_get(d, "position_m", "accuracy"), "accuracy.position_m")
-    att = _num_or_vector(_get(d, "attitude_deg", "accuracy"), "accuracy.attitude_deg")
+def _accuracy(d: Any, path: str = "accuracy") -> Accuracy:
+    pos = _num_or_vector(_get(d, "position_m", path), f"{path}.position_m")
+    att = _num_or_vector(_get(d, "attitude_deg", path), f"{path}.attitude_deg")
     for name, v in (("position_m", pos), ("attitude_deg", att)):
         if np.any(v <= 0):
-            raise PackageError(f"accuracy.{name}", "standard deviations must be positive")
+            raise PackageError(f"{path}.{name}", "standard deviations must be positive")
     return Accuracy(position_m=pos, attitude_deg=att)
 
 
-def _frames(raw: Any, root: Path | None) -> tuple[FrameRecord, ...]:
+def _frames(raw: Any, root: Path | None, path: str = "frames") -> tuple[FrameRecord, ...]:
     if not isinstance(raw, list) or not raw:
-        raise PackageError("frames", "expected a non-empty array")
+        raise PackageError(path, "expected a non-empty array")
     out = []
     for i, f in enumerate(raw):
-        p = f"frames[{i}]"
+        p = f"{path}[{i}]"
         if not isinstance(f, Mapping):
             raise PackageError(p, "expected a JSON object")
         file = safe_relative(_get(f, "file", p), f"{p}.file")
@@ -315,7 +316,15 @@ def parse_manifest(d: Any, root: Path | None = None) -> SequenceManifest:
         imu=imu,
         gcps=gcps,
         conditions=None if d.get("conditions") is None else parse_conditions(d["conditions"], PackageError),
+        rgb=None if d.get("rgb_camera") is None else _rgb_camera(d["rgb_camera"], root),
     )
+
+
+def _rgb_camera(d: Any, root: Path | None) -> SecondCamera:
+    """The optional `rgb_camera` section (`db.sequence_rgb.parse_rgb_camera`)."""
+    from db.sequence_rgb import parse_rgb_camera  # it builds on this module's field readers
+
+    return parse_rgb_camera(d, root)
 
 
 # -- writing -------------------------------------------------------------------------------------
@@ -361,6 +370,10 @@ def manifest_to_dict(
     ]
     if m.conditions is not None and m.conditions.to_dict():
         d["conditions"] = m.conditions.to_dict()
+    if m.rgb is not None:
+        from db.sequence_rgb import rgb_camera_to_dict
+
+        d["rgb_camera"] = rgb_camera_to_dict(m.rgb)
     if m.imu is not None:
         d["imu"] = imu_file
     if m.gcps is not None:

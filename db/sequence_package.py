@@ -42,6 +42,7 @@ from db.sequence_manifest import (
     safe_relative,
     write_imu_csv,
 )
+from db.sequence_rgb import RgbFrames, check_rgb_frames, write_rgb_frames
 from workers.pipeline.geometry.manifest import Radiometry, SequenceManifest
 
 __all__ = [
@@ -113,11 +114,11 @@ def physical_from_raw(arr: np.ndarray, radiometry: Radiometry) -> np.ndarray:
 
 #: bytes of decoded frames kept per process (`PackageFrames.raw`)
 FRAME_CACHE_BYTES = 256 * 1024**2
-_FRAMES: OrderedDict[tuple[str, int, int], np.ndarray] = OrderedDict()
+_FRAMES: OrderedDict[tuple[object, ...], np.ndarray] = OrderedDict()
 _CACHED_BYTES = [0]  # bytes held in `_FRAMES`, kept as frames come and go (no sum per insert)
 
 
-def _remember(key: tuple[str, int, int], arr: np.ndarray) -> None:
+def _remember(key: tuple[object, ...], arr: np.ndarray) -> None:
     """Keep a decoded frame, dropping the least recently used beyond `FRAME_CACHE_BYTES`; O(1)
     per frame (a running byte total: at small frame sizes the cache holds thousands)."""
     previous = _FRAMES.pop(key, None)
@@ -179,8 +180,30 @@ class PackageFrames:
         return arr
 
     def load(self, index: int) -> np.ndarray:
-        """Frame `index` as float32 physical values (radiometry applied), shape `(H, W)`."""
-        return physical_from_raw(self.raw(index), self.radiometry)
+        """Frame `index` as float32 physical values (radiometry applied), shape `(H, W)`; a fresh
+        array. The converted frame is kept in the same per-process cache as the decoded one (the
+        units of a flight convert the same frames dozens of times; a copy is cheaper)."""
+        raw = self.raw(index)
+        file_key = self._cache_key(index)
+        key = (*file_key, "physical", self.radiometry) if file_key is not None else None
+        if key is not None and (hit := _FRAMES.get(key)) is not None:
+            _FRAMES.move_to_end(key)
+            return hit.copy()
+        out = physical_from_raw(raw, self.radiometry)
+        if key is not None:
+            kept = out.copy()
+            kept.flags.writeable = False
+            _remember(key, kept)
+        return out
+
+    def _cache_key(self, index: int) -> tuple[str, int, int] | None:
+        """The frame file's cache key (path, size, modification time); None when it cannot be read."""
+        path = Path(self.root) / self.files[index]
+        try:
+            st = path.stat()
+        except OSError:
+            return None
+        return (str(path), st.st_size, st.st_mtime_ns)
 
 
 # -- package -------------------------------------------------------------------------------------
@@ -201,6 +224,8 @@ class SequencePackage:
             height=manifest.camera.height,
             radiometry=manifest.radiometry,
         )
+        #: the second (RGB) camera's frames (`load(i) -> (H, W, 3)` uint8), None without one
+        self.rgb_frames = None if manifest.rgb is None else RgbFrames(str(root.resolve()), manifest.rgb)
         self._tmp = tmp
         self._finalizer = (
             weakref.finalize(self, shutil.rmtree, str(tmp), ignore_errors=True) if tmp is not None else None
@@ -258,6 +283,8 @@ def read_manifest(root: Path, *, check_frames: bool = True) -> SequenceManifest:
     manifest = parse_manifest(d, root)
     if check_frames:
         _check_frames(manifest, root)
+        if manifest.rgb is not None:
+            check_rgb_frames(manifest.rgb, root)
     return manifest
 
 
@@ -306,9 +333,15 @@ def _frame_for_file(arr: np.ndarray, file: str, radiometry: Radiometry) -> np.nd
     raise PackageError(file, f"cannot write sample type {a.dtype} as PNG (uint8, uint16 or float)")
 
 
-def write_package(out_dir: str | Path, manifest: SequenceManifest, frames: Iterable[np.ndarray]) -> Path:
+def write_package(
+    out_dir: str | Path,
+    manifest: SequenceManifest,
+    frames: Iterable[np.ndarray],
+    rgb_frames: Iterable[np.ndarray] | None = None,
+) -> Path:
     """Write a package folder: `sequence.json`, one image per manifest frame, `imu.csv` and
-    `gcps.json` when the manifest has them. Returns the folder.
+    `gcps.json` when the manifest has them, and the RGB frames (`rgb_frames`: `(H, W, 3)` uint8
+    RGB, required when `manifest.rgb` is set). Returns the folder.
 
     `frames` yields `(H, W)` arrays in manifest order: uint16 DNs or uint8 for `.png` files
     (float arrays are taken as physical values and converted with `radiometry.dn`), uint16 or
@@ -337,6 +370,10 @@ def write_package(out_dir: str | Path, manifest: SequenceManifest, frames: Itera
         n += 1
     if n != len(manifest.frames):
         raise PackageError("frames", f"{n} images given for {len(manifest.frames)} manifest frames")
+    if manifest.rgb is not None:
+        if rgb_frames is None:
+            raise PackageError("rgb_camera", "the manifest has an rgb camera but no rgb frames were given")
+        write_rgb_frames(out, manifest.rgb, rgb_frames)
     d: dict[str, Any] = manifest_to_dict(manifest)
     if manifest.imu is not None:
         write_imu_csv(out / d["imu"], manifest.imu)

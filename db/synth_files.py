@@ -2,8 +2,10 @@
 
 In: a `SynthResult`, paths. Out: a sequence package folder (via `db.sequence_package.
 write_package`: `sequence.json`, 16-bit frames, `imu.csv`, optional `gcps.json`) and the truth
-JSON (`docs/synth-truth.md`) written next to (not inside) it; `load_truth` reads a truth file
-back; `load_buildings` reads the CityGML model a truth names (or rebuilds the procedural block).
+JSON (`docs/synth-truth.md`) written next to (not inside) it (with `SynthOptions.rgb`, the
+package also holds the RGB frames `rgb/NNNNNN.png` and its `rgb_camera` section); `load_truth`
+reads a truth file back; `load_buildings` reads the CityGML model a truth names (or rebuilds
+the procedural block).
 The generator itself is pure; its files live here, with the other file formats.
 """
 
@@ -61,7 +63,8 @@ def write_synthetic_package(
     tp = Path(truth_path) if truth_path is not None else out.with_name(out.name + ".truth.json")
     if tp.resolve().is_relative_to(out.resolve()):
         raise SynthError(f"truth path {tp} must not be inside the package {out}")
-    write_package(out, result.manifest, result.frames if frames is None else frames)
+    rgb_frames = None if result.rgb is None else result.rgb.frames
+    write_package(out, result.manifest, result.frames if frames is None else frames, rgb_frames)
     rel = os.path.relpath(out.resolve(), tp.resolve().parent)
     save_truth(replace(result.truth, package=rel), tp)
     return out

@@ -1,11 +1,12 @@
 """`citytherm synth`: render a synthetic TIR sequence package with ground truth.
 
     citytherm synth --model M.gml --platform drive --buildings 5 --frames 100 --seed 1 \\
-        --truth TRUTH.json -o PACKAGE/
+        --truth TRUTH.json -o PACKAGE/ [--rgb]
 
 Without `--model` the bundled Berlin LoD2 model is used (`--procedural N` builds a block of N
-gable-roofed houses instead). The truth file (true poses, mounting, delay, anomalies; see
-`docs/synth-truth.md`) is written next to the package, never inside it.
+gable-roofed houses instead). `--rgb` adds a visible-band camera on the same mount (frames
+`rgb/NNNNNN.png`, the manifest's `rgb_camera` section). The truth file (true poses, mounting,
+delay, anomalies; see `docs/synth-truth.md`) is written next to the package, never inside it.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from workers.pipeline.synth import (
     DriveOptions,
     ErrorOptions,
     FlightOptions,
+    RgbOptions,
     SensorOptions,
     SynthError,
     SynthOptions,
@@ -112,6 +114,11 @@ def synth(
     width: int = typer.Option(640, "--width", help="Image width, px."),
     image_height: int = typer.Option(512, "--image-height", help="Image height, px."),
     hfov: float = typer.Option(45.0, "--hfov", help="Horizontal field of view, deg."),
+    rgb: bool = typer.Option(
+        False, "--rgb", help="Add an RGB camera on the mount (rgb/*.png, the manifest's rgb_camera)."
+    ),
+    rgb_width: int = typer.Option(1280, "--rgb-width", help="RGB image width, px."),
+    rgb_height: int = typer.Option(1024, "--rgb-height", help="RGB image height, px."),
 ) -> None:
     """Render a synthetic TIR sequence package of a city model, with a ground-truth file."""
     console = Console()
@@ -171,6 +178,7 @@ def synth(
                 supersample=supersample,
             ),
             n_gcps=gcps,
+            rgb=RgbOptions(width=rgb_width, height=rgb_height) if rgb else None,
             model_path=str(Path(model_path).resolve()) if model_path else None,
             procedural=proc,
         )
@@ -187,7 +195,8 @@ def synth(
     tp = truth if truth is not None else out.with_name(out.name + ".truth.json")
     t = result.truth
     console.print(
-        f"[green]wrote[/green] {out} ({frames} frames, {platform}), truth {tp}\n"
+        f"[green]wrote[/green] {out} ({frames} frames{', with an RGB camera' if rgb else ''}, {platform}), "
+        f"truth {tp}\n"
         f"  scene: {len(t.buildings)} buildings, cluster {len(t.cluster)}, {len(t.anomalies)} anomalies, "
         f"ground z {t.ground_z:.2f} m, crs {t.crs}\n"
         f"  true boresight {list(map(float, t.true_mounting.boresight_deg))} deg, "

@@ -136,6 +136,30 @@ class Conditions:
 
 
 @dataclass(frozen=True, eq=False)
+class SecondCamera:
+    """The optional second (visible-band, RGB) camera on the same mount (`rgb_camera` of the
+    manifest, section `version` 1; see `docs/sequence-format.md`).
+
+    Attributes:
+        camera: interior orientation (OPENCV model, pixel centres at integers).
+        mounting: its mounting on the INS body, the same convention as the TIR camera's.
+        frames: its frames; `position` / `attitude_deg` are the INS-body solution that, with
+            `mounting`, gives this camera's pose (as for TIR frames), `time` on the INS clock.
+        channels: 3 (8-bit RGB) or 1 (8-bit grey).
+        pose_source: `"ins"` (the GNSS/INS solution) or `"photogrammetric"` (an adjusted block,
+            e.g. with ground control: more accurate than the INS).
+        accuracy: a-priori standard deviations of these poses (None: those of `accuracy`).
+    """
+
+    camera: Camera
+    mounting: Mounting
+    frames: tuple[FrameRecord, ...]
+    channels: int = 3
+    pose_source: str = "ins"
+    accuracy: Accuracy | None = None
+
+
+@dataclass(frozen=True, eq=False)
 class SequenceManifest:
     """The parsed `sequence.json` (everything but the pixels)."""
 
@@ -152,6 +176,7 @@ class SequenceManifest:
     gcps: GroundControl | None = None
     format: str = FORMAT
     conditions: Conditions | None = None  # survey conditions (air temperature), when given
+    rgb: SecondCamera | None = None  # the optional RGB camera (`rgb_camera`), when given
 
 
 class FrameSource(Protocol):

@@ -24,7 +24,9 @@ Public API (everything below is importable from `workers.pipeline.synth`):
   `frame(pose, index)` (sensor effects), `frame_dn`, `labels(pose)` (polygon index per pixel).
 - `procedural_block(n_buildings, seed) -> list[Building]`; `default_camera()`.
 - Options: `SynthOptions`, `DriveOptions`, `FlightOptions`, `ErrorOptions`, `ThermalOptions`,
-  `SensorOptions`. Errors: `SynthError`.
+  `SensorOptions`, `RgbOptions` (`SynthOptions(rgb=RgbOptions())`: a second, visible-band camera;
+  `result.rgb` is a `SynthRgb`: lazy `(H, W, 3)` uint8 `frames`, `true_poses`, `recorded_poses`,
+  the manifest's `second_camera`). Errors: `SynthError`.
 
 Typical test use::
 
@@ -42,6 +44,7 @@ from workers.pipeline.synth.scene import SynthFrames, SynthOptions, SynthResult,
 from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
 from workers.pipeline.synth.trajectory import DriveOptions, FlightOptions, PathTrajectory
 from workers.pipeline.synth.truth import SynthTruth, thermal_scene_for_truth
+from workers.pipeline.synth.visible import RgbOptions, RgbRenderer, SynthRgb
 
 __all__ = [
     "BUNDLED_MODEL",
@@ -55,11 +58,14 @@ __all__ = [
     "InsSimulation",
     "PathTrajectory",
     "Renderer",
+    "RgbOptions",
+    "RgbRenderer",
     "SensorOptions",
     "SynthError",
     "SynthFrames",
     "SynthOptions",
     "SynthResult",
+    "SynthRgb",
     "SynthTruth",
     "ThermalOptions",
     "ThermalScene",

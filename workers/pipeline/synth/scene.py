@@ -40,6 +40,7 @@ from workers.pipeline.synth.trajectory import (
     flight_loop,
 )
 from workers.pipeline.synth.truth import SynthTruth
+from workers.pipeline.synth.visible import RgbOptions, SynthRgb, synth_rgb
 
 #: the true mounting errors of a hand-held camera with its GNSS/INS (`platform="terrestrial"`)
 #: unless `ErrorOptions` gives them: boresight (degrees about body x, y, z), lever arm (m)
@@ -72,6 +73,7 @@ class SynthOptions:
     model_path: str | None = None  # recorded in the truth
     procedural: tuple[int, int] | None = None  # (n_buildings, seed) recorded when procedural
     frame_ext: str = "png"  # "png" (16-bit) or "tif"
+    rgb: RgbOptions | None = None  # a second, visible-band camera on the mount (`rgb_camera`)
 
 
 class SynthFrames:
@@ -122,6 +124,7 @@ class SynthResult:
     buildings: tuple[Building, ...]
     ins: InsSimulation
     renderer: Renderer
+    rgb: SynthRgb | None = None  # the RGB camera when `SynthOptions.rgb` asks for one
 
 
 def _manifest_crs(buildings: Sequence[Building], crs: str | None) -> str:
@@ -280,6 +283,9 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
         for i in range(o.n_frames)
     )
     gcps = _gcps([blds[i] for i in cluster], renderer, ins.poses, o.n_gcps, o.gcp_pixel_sigma, o.seed)
+    rgb = None
+    if o.rgb is not None:
+        rgb = synth_rgb(renderer, list(ins.poses), ins.true_mounting, times - ins.time_delay_s, o.rgb, o.seed)
     manifest = SequenceManifest(
         platform=o.platform,
         crs=_manifest_crs(scene, o.crs),
@@ -291,6 +297,7 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
         accuracy=ins.accuracy,
         imu=ins.imu,
         gcps=gcps,
+        rgb=None if rgb is None else rgb.second_camera,
     )
     truth = SynthTruth(
         seed=o.seed,
@@ -324,4 +331,5 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
         buildings=tuple(scene),
         ins=ins,
         renderer=renderer,
+        rgb=rgb,
     )
