@@ -19,3 +19,39 @@ def test_frame_cache_keeps_its_byte_total_and_bound(monkeypatch) -> None:
         sp._remember(("pkg", i % 3, 0), np.zeros(100, np.float32))
         assert sp._CACHED_BYTES[0] == sum(a.nbytes for a in sp._FRAMES.values()) <= 10_000
     assert len(sp._FRAMES) == 25 and ("pkg", 49, 0) in sp._FRAMES and ("pkg", 10, 0) not in sp._FRAMES
+
+
+def test_physical_frames_are_converted_once_and_handed_out_fresh(tmp_path, monkeypatch) -> None:
+    """`PackageFrames.load` keeps the converted frame next to the decoded one: a second load
+    returns the same values (NaN where DN 0) without converting again, as a fresh writable array
+    (a caller writing into it changes nothing for the next); a rewritten file is read anew."""
+    import os
+
+    import cv2
+
+    import db.sequence_package as sp
+    from workers.pipeline.geometry.manifest import Radiometry
+
+    monkeypatch.setattr(sp, "_FRAMES", type(sp._FRAMES)())
+    monkeypatch.setattr(sp, "_CACHED_BYTES", [0])
+    dn = np.random.default_rng(3).integers(1, 40_000, (6, 8)).astype(np.uint16)
+    dn[2, 3] = 0
+    assert cv2.imwrite(str(tmp_path / "f0.png"), dn)
+    rad = Radiometry(scale=0.01, offset=-1.5)
+    frames = sp.PackageFrames(str(tmp_path), ("f0.png",), 8, 6, rad)
+    calls = []
+    real = sp.physical_from_raw
+    monkeypatch.setattr(sp, "physical_from_raw", lambda a, r: calls.append(1) or real(a, r))
+    first = frames.load(0)
+    expect = dn.astype(np.float32) * np.float32(0.01) + np.float32(-1.5)
+    expect[2, 3] = np.nan
+    np.testing.assert_array_equal(first, expect)
+    first[:] = 0.0  # the caller owns its array
+    second = frames.load(0)
+    np.testing.assert_array_equal(second, expect)
+    assert second.flags.writeable and len(calls) == 1
+    assert np.isnan(sp.PackageFrames(str(tmp_path), ("f0.png",), 8, 6, Radiometry(scale=0.02)).load(0)[2, 3])
+    assert len(calls) == 2  # another radiometry: converted on its own
+    assert cv2.imwrite(str(tmp_path / "f0.png"), dn + 1)
+    os.utime(tmp_path / "f0.png", ns=(1, 1))  # a new modification time: a new cache key
+    np.testing.assert_allclose(frames.load(0)[0, 0], expect[0, 0] + 0.01, rtol=1e-5)

@@ -86,3 +86,16 @@ def test_a_polygon_too_thin_for_a_texel_centre_still_gets_texels() -> None:
     strip = Polygon("strip", outline, surface_class="WallSurface")
     grid = texel_grid(strip, "b", TexelOptions(resolution_px_per_m=10.0, min_area_m2=0.01))
     assert grid is not None and grid.n_texels == 40
+
+
+def test_sorted_columns_matches_numpy_sort_with_empty_slots() -> None:
+    """The sorting network of the kept observations orders every column as `np.sort` does,
+    empty slots (inf) last, for every number of kept observations."""
+    from workers.pipeline.texture.fused import sorted_columns
+
+    rng = np.random.default_rng(7)
+    for k in range(1, 11):
+        x = rng.normal(300.0, 5.0, (k, 500)).astype(np.float32)
+        x[rng.random((k, 500)) < 0.3] = np.inf
+        x[:, :3] = 290.0  # ties
+        assert np.array_equal(sorted_columns(x), np.sort(x, axis=0)), k

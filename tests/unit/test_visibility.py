@@ -118,3 +118,77 @@ def test_texels_on_a_shared_wall_are_never_visible():
     pts = g.centres(r, c)
     got = buried_texels(rc, pts, g.normal)
     assert np.array_equal(got, pts[:, 2] < 4.0)
+
+
+def test_coarse_window_extremes_decide_as_the_element_wise_test():
+    """The coarse occlusion step decides from window minima and maxima (`_coarse_all`); on a
+    scene with an occluder, silhouettes and sky it must agree sample for sample with the
+    element-wise test of the 2x2 window and of that window grown by one element."""
+    from workers.pipeline.texture.occlusion import OcclusionScene, consistent_samples
+
+    front = box_building("FRONT", 0, 0, 12, 6, 10)
+    back = box_building("BACK", -6, 20, 20, 28, 14)
+    rc = RayCaster(build_scene_mesh([front, back]))
+    opts = VisibilityOptions()
+    scene = OcclusionScene(rc, CAM, opts)
+    pose = look_at([4, -15, 1.6], [6, 24, 5])
+    rng = np.random.default_rng(11)
+    uv = rng.uniform([2, 2], [CAM.width - 3, CAM.height - 3], (4000, 2))
+    # the distance each sample's ray has to the first surface, and a plane group per sample:
+    # half of them the true one, half a wrong one or a wrong distance
+    hits = rc.cast(np.broadcast_to(pose.center, (len(uv), 3)), CAM.bearing(uv) @ pose.R_world_from_cam.T)
+    seen = np.isfinite(hits.t)
+    uv, t, poly = uv[seen], hits.t[seen], hits.polygon[seen]
+    group = scene.polygon_group[poly].copy()
+    wrong = rng.random(len(uv)) < 0.25
+    group[wrong] = scene.polygon_group[(poly[wrong] + 1) % rc.mesh.n_polygons]
+    t = np.where(rng.random(len(uv)) < 0.1, t + 2.0, t)
+    buf = scene.buffer(pose, uv, scene.step, 1)
+    got = scene._coarse_all(buf, uv, t, group)
+    pg = scene.polygon_group
+    core = consistent_samples(buf, uv, t, group, pg, opts, 0)
+    ring_ = consistent_samples(buf, uv, t, group, pg, opts, 1)
+    assert np.array_equal(got, core & ring_)
+    assert 0.2 < got.mean() < 0.9  # both outcomes occur
+
+
+def test_stacked_candidates_lose_no_texel_the_frame_would_improve():
+    """The per-frame block culling of all surfaces at once (`UnitTexels.candidates`) keeps every
+    texel that the projection and ranking (`observe`) would accept from the whole surface."""
+    from workers.pipeline.texture.frame_pass import UnitTexels, observe
+    from workers.pipeline.texture.fused import SurfaceTexture
+    from workers.pipeline.texture.fusion import SurfaceTexels
+
+    b = box_building("B", 0, 0, 30, 12, 9)
+    grids = [g for p in b.polygons if (g := texel_grid(p, "B", TexelOptions(resolution_px_per_m=10)))]
+    surfaces = [SurfaceTexels.of(g) for g in grids]
+    textures = [SurfaceTexture.empty(g.shape) for g in grids]
+    stack = UnitTexels.of(surfaces, textures)
+    opts = VisibilityOptions()
+    n_seen = 0
+    for center in ([15, -12, 1.6], [-8, -6, 1.6], [40, 20, 30], [18, -4, 50]):
+        pose = look_at(center, [15, 6, 4])
+        every = observe(CAM, pose, stack, np.arange(len(stack.points)), opts, 1.0)
+        cand = stack.candidates(CAM, pose, opts, 1.0)
+        kept = observe(CAM, pose, stack, cand, opts, 1.0)
+        assert np.array_equal(every.idx, kept.idx)
+        assert len(cand) < len(stack.points)  # something was culled
+        n_seen += len(every.idx)
+    assert n_seen > 1000
+
+
+def test_pixels_to_cast_are_exactly_the_sampling_windows():
+    """The pixels an occlusion step casts (`_CastGrid.needed`, a dilation of the window corners)
+    are exactly the union of the samples' windows: 2x2 grown by `m` around the top-left pixel,
+    and the `(3 + 2m)²` pixel corners from the top-left corner."""
+    from workers.pipeline.texture.occlusion import _CastGrid, _offsets
+
+    grid = _CastGrid(np.zeros((50, 60, 3), np.float32))
+    rng = np.random.default_rng(5)
+    for m, n in ((0, 40), (1, 40), (2, 40), (0, 3), (1, 2)):  # dense and listed
+        lin = rng.integers(m, 44 - m, n) * 60 + rng.integers(m, 54 - m, n)
+        want = np.unique(lin[:, None] + _offsets(60, m)[None])
+        assert np.array_equal(grid.needed(lin, 2 + 2 * m, m), want)
+        k = np.arange(3 + 2 * m)
+        want = np.unique(lin[:, None] + (k[:, None] * 60 + k[None, :]).ravel()[None])
+        assert np.array_equal(grid.needed(lin, 3 + 2 * m, 0), want)

@@ -8,7 +8,9 @@ units (`FrameSource`), a ray caster over the building and its occluders. Out: pe
 Modules and their entry points:
 - `texel`: the texel grid laid on a planar polygon (`texel_grid`, `TexelOptions`).
 - `visibility`: which buildings and texels a frame sees (`boxes_in_frustum`, `project_texels`,
-  `OcclusionScene`, `buried_texels`).
+  `buried_texels`; re-exports `OcclusionScene`).
+- `occlusion`: the clean-pixel test of a frame's texel samples by ray casting (`OcclusionScene`).
+- `frame_pass`: a frame over all surfaces of a unit at once (`UnitTexels`, `observe`).
 - `fusion`: sampling one frame onto the grids and fusing it in (`texture_frame`,
   `SurfaceTexture`, `FusionOptions`).
 - `alignment`: sub-texel alignment of a partial texture by correlation (`align_partial`).

@@ -154,7 +154,7 @@ class SurfaceTexture:
         usable = np.isfinite(v) & (res <= best_res * np.float32(o.blend_ratio))
         # robust centre of the usable observations; two that disagree: the best one decides
         n_use = usable.sum(axis=0)
-        srt = np.sort(np.where(usable, v, np.inf), axis=0)  # usable values first, ascending
+        srt = sorted_columns(np.where(usable, v, np.inf))  # usable values first, ascending
         lo = np.take_along_axis(srt, ((n_use - 1) // 2)[None], axis=0)[0]
         hi = np.take_along_axis(srt, (n_use // 2)[None], axis=0)[0]
         med = 0.5 * (lo + hi)
@@ -164,3 +164,17 @@ class SurfaceTexture:
         w = np.where(inlier, 1.0 / np.maximum(res, 1e-6) ** 2, 0.0).astype(np.float32)
         self.value[r, c] = (np.where(inlier, v, 0.0) * w).sum(axis=0) / w.sum(axis=0)
         self.count[r, c] = inlier.sum(axis=0)
+
+
+def sorted_columns(x: np.ndarray) -> np.ndarray:
+    """`x (K, N)` (no NaN) sorted along axis 0, as `np.sort(x, axis=0)`: for the few kept
+    observations (K <= 8) by an odd-even transposition network of element-wise minima and maxima,
+    an order of magnitude faster than numpy's sort along a short axis."""
+    k = x.shape[0]
+    if k > 8:
+        return np.sort(x, axis=0)
+    rows = list(x)
+    for r in range(k):
+        for i in range(r % 2, k - 1, 2):
+            rows[i], rows[i + 1] = np.minimum(rows[i], rows[i + 1]), np.maximum(rows[i], rows[i + 1])
+    return np.stack(rows) if rows else x.copy()

@@ -21,6 +21,7 @@ before any projection. No 8-bit conversion happens anywhere on this path.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -30,15 +31,14 @@ import numpy as np
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.texture.alignment import AlignOptions, align_partial
+from workers.pipeline.texture.frame_pass import UnitTexels, observe
 from workers.pipeline.texture.fused import FusedOptions, SurfaceTexture
 from workers.pipeline.texture.texel import TexelGrid
 from workers.pipeline.texture.visibility import (
     OcclusionScene,
     VisibilityOptions,
     boxes_in_frustum,
-    facing,
     frustum_extent,
-    project_texels,
 )
 
 
@@ -223,6 +223,22 @@ class SurfaceTexels:
         return np.arange(int(lengths.sum())) + offsets
 
 
+#: the stacked texels of the last unit's surfaces, reused frame after frame: `(surfaces,
+#: textures, stack)` (the lists are the unit's own, passed unchanged for every frame)
+_STACK: list[tuple[Sequence[SurfaceTexels], Sequence[SurfaceTexture], UnitTexels]] = []
+
+
+def unit_stack(surfaces: Sequence[SurfaceTexels], textures: Sequence[SurfaceTexture]) -> UnitTexels:
+    """The `UnitTexels` of `surfaces` and `textures`, built on the first frame of a unit."""
+    entry = _STACK[0] if _STACK else None  # read once: another thread may replace it
+    same = entry is not None and entry[0] is surfaces and entry[1] is textures
+    if same and len(entry[2].size) == len(surfaces):  # the same lists, not grown since
+        return entry[2]
+    stack = UnitTexels.of(surfaces, textures)
+    _STACK[:] = [(surfaces, textures, stack)]
+    return stack
+
+
 def texture_frame(
     image: np.ndarray,
     camera: Camera,
@@ -239,81 +255,78 @@ def texture_frame(
     Args:
         image: `(H, W)` float32 physical values of frame `frame_index`.
         camera, pose: its interior and exterior orientation (world = model CRS).
-        surfaces, textures: the surfaces of one building and their fused textures (same order).
+        surfaces, textures: the surfaces of one building and their fused textures (same order;
+            pass the same two lists for every frame of a unit: their stack is kept).
         scene: the scene (building and occluders) for the occlusion test, or None (no test).
 
-    Returns the number of texels this frame observed with a better local resolution than fused
-    so far (the candidates for merging; observations that cannot win are skipped before the
-    occlusion test).
+    All surfaces go through each step at once (`frame_pass`): candidates, projection and
+    ranking, then one occlusion test (`OcclusionScene.visible_flat`) and one sampling; only the
+    merge runs per surface. Returns the number of texels this frame observed (kept after the
+    occlusion test; observations that cannot win are skipped before it).
     """
     if not surfaces:
         return 0
-    lo = np.stack([s.lo for s in surfaces])
-    hi = np.stack([s.hi for s in surfaces])
-    candidates = boxes_in_frustum(camera, pose, lo, hi, visibility)
-    # per surface: texel indices, their pixels, distances and viewing-angle cosines
-    picked: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-    for k in np.nonzero(candidates)[0]:
-        surf = surfaces[k]
-        if len(surf.points) == 0 or not facing(surf.grid.normal, surf.grid.corner, pose.center):
-            continue
-        sub = surf.in_view(camera, pose, visibility, textures[k].worst, fusion.improve_factor)
-        if len(sub) == 0:
-            continue
-        proj = project_texels(camera, pose, surf.points[sub], surf.grid.normal, visibility)
-        ok = np.nonzero(proj.ok)[0]
-        if len(ok) == 0:
-            continue
-        idx = sub[ok]
-        # observations that cannot win (coarser than what is fused) need no occlusion test
-        res_s, res_t = local_resolution(camera, pose, surf.points[idx], surf.grid.s_axis, surf.grid.t_axis)
-        res = np.maximum(res_s, res_t).astype(np.float32)
-        tex = textures[k]
-        win = res < tex.worst[surf.rows[idx], surf.cols[idx]] * np.float32(fusion.improve_factor)
-        win &= res <= visibility.max_texel_ratio * surf.grid.size
-        if win.any():
-            w = np.nonzero(win)[0]
-            picked.append(
-                (int(k), idx[w], proj.uv[ok[w]], proj.distance[ok[w]], proj.cos_view[ok[w]], res[w])
-            )
-    if not picked:
+    stack = unit_stack(surfaces, textures)
+    cand = stack.candidates(camera, pose, visibility, fusion.improve_factor)
+    if len(cand) == 0:
         return 0
-    if scene is not None:
-        groups = []
-        for k, *_ in picked:
-            own = scene.polygon_index.get(surfaces[k].grid.polygon_id, -1)
-            groups.append(int(scene.polygon_group[own]) if own >= 0 else -2)
-        keeps = scene.visible(pose, [(p[2], p[3], g) for p, g in zip(picked, groups, strict=True)])
-    observed = 0
-    for j, (k, idx, uv, _dist, cos_view, res) in enumerate(picked):
-        if scene is not None:
-            keep = keeps[j]
-            idx, uv, cos_view, res = idx[keep], uv[keep], cos_view[keep], res[keep]
-        if len(idx) == 0:
-            continue
-        surf, tex = surfaces[k], textures[k]
-        rows, cols = surf.rows[idx], surf.cols[idx]
-        values = sample_bilinear(image, uv)
+    obs = observe(camera, pose, stack, cand, visibility, fusion.improve_factor)
+    idx, uv, cos_view, res = obs.idx, obs.uv, obs.cos_view, obs.res
+    if scene is not None and len(idx):
+        own = [scene.polygon_index.get(s.grid.polygon_id, -1) for s in surfaces]
+        group = np.where(np.array(own) >= 0, scene.polygon_group[own], -2)
+        keep = scene.visible_flat(pose, uv, obs.distance, group[stack.surface[idx]])
+        idx, uv, cos_view, res = idx[keep], uv[keep], cos_view[keep], res[keep]
+    if len(idx) == 0:
+        return 0
+    values = sample_bilinear(image, uv)
+    angle = np.degrees(np.arccos(np.clip(cos_view, -1.0, 1.0))).astype(np.float32)
+    surf = stack.surface[idx]
+    bounds = np.flatnonzero(np.r_[True, surf[1:] != surf[:-1], True])
+    first = np.r_[0, np.cumsum([len(s.points) for s in surfaces])]
+    for a, b in itertools.pairwise(bounds):
+        k = int(surf[a])
+        sl = slice(a, b)
+        surf_k, tex = surfaces[k], textures[k]
+        local = idx[sl] - first[k]
+        rows, cols = surf_k.rows[local], surf_k.cols[local]
+        vals = values[sl]
         if fusion.align and len(rows) >= fusion.alignment.min_overlap_texels:
-            # the partial texture's bounding box (one texel wider): all the overlap there is
-            H, W = tex.value.shape
-            r0, r1 = max(int(rows.min()) - 1, 0), min(int(rows.max()) + 2, H)
-            c0, c1 = max(int(cols.min()) - 1, 0), min(int(cols.max()) + 2, W)
-            part = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
-            part[rows - r0, cols - c0] = values
-            shift = align_partial(tex.value[r0:r1, c0:c1], part, fusion.alignment)
-            if shift is not None and math.hypot(shift[0], shift[1]) >= max(
-                fusion.deadband_texels, fusion.min_significance * shift[3]
-            ):
-                dx, dy = shift[0], shift[1]
-                xy = np.stack([cols + 0.5 + dx, rows + 0.5 + dy], axis=1)
-                uv_s, _ = pose.project(camera, surf.grid.points_at(xy))
-                inside = camera.in_image(uv_s, margin=0.0)
-                values = np.where(inside, sample_bilinear(image, np.nan_to_num(uv_s)), np.nan).astype(
-                    np.float32
-                )
-                tex.shifts[frame_index] = (dx, dy)
-        angle = np.degrees(np.arccos(np.clip(cos_view, -1.0, 1.0))).astype(np.float32)
-        tex.merge(rows, cols, values, res, angle, frame_index, fusion.improve_factor)
-        observed += len(idx)
-    return observed
+            vals = _aligned(image, camera, pose, frame_index, surf_k, tex, rows, cols, vals, fusion)
+        tex.merge(rows, cols, vals, res[sl], angle[sl], frame_index, fusion.improve_factor)
+        stack.worst[idx[sl]] = tex.worst[rows, cols]
+    return len(idx)
+
+
+def _aligned(
+    image: np.ndarray,
+    camera: Camera,
+    pose: Pose,
+    frame_index: int,
+    surf: SurfaceTexels,
+    tex: SurfaceTexture,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    values: np.ndarray,
+    fusion: FusionOptions,
+) -> np.ndarray:
+    """A frame's partial texture `values (N,)` at texels `rows, cols` of one surface, resampled
+    after aligning it to the fused texture (`FusionOptions.align`; the shift is recorded in
+    `tex.shifts`), or `values` unchanged when no significant shift is found."""
+    # the partial texture's bounding box (one texel wider): all the overlap there is
+    H, W = tex.value.shape
+    r0, r1 = max(int(rows.min()) - 1, 0), min(int(rows.max()) + 2, H)
+    c0, c1 = max(int(cols.min()) - 1, 0), min(int(cols.max()) + 2, W)
+    part = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+    part[rows - r0, cols - c0] = values
+    shift = align_partial(tex.value[r0:r1, c0:c1], part, fusion.alignment)
+    if shift is None or math.hypot(shift[0], shift[1]) < max(
+        fusion.deadband_texels, fusion.min_significance * shift[3]
+    ):
+        return values
+    dx, dy = shift[0], shift[1]
+    xy = np.stack([cols + 0.5 + dx, rows + 0.5 + dy], axis=1)
+    uv_s, _ = pose.project(camera, surf.grid.points_at(xy))
+    inside = camera.in_image(uv_s, margin=0.0)
+    tex.shifts[frame_index] = (dx, dy)
+    return np.where(inside, sample_bilinear(image, np.nan_to_num(uv_s)), np.nan).astype(np.float32)

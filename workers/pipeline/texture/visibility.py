@@ -10,22 +10,47 @@ camera, its surface faces the camera within a maximum viewing angle, and the pix
 sampling reads (plus a blur margin) all see the texel's own plane at the texel's distance: the
 occlusion test by ray casting through the whole scene, which also keeps samples from mixing the
 surface with the sky or other surfaces at silhouettes (`OcclusionScene`). Texels on a wall
-shared with a touching building are never visible (`buried_texels`).
+shared with a touching building are never visible (`buried_texels`). The occlusion test itself
+is `occlusion.OcclusionScene` (re-exported here).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
-from workers.pipeline.geometry.raycast import RayCaster, SceneMesh
+from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.texture.occlusion import (
+    HitBuffer,
+    OcclusionScene,
+    consistent_samples,
+    corner_rays,
+    pixel_rays,
+    plane_groups,
+)
+
+__all__ = [  # the occlusion test (`occlusion`) is re-exported
+    "HitBuffer",
+    "OcclusionScene",
+    "TexelProjection",
+    "VisibilityOptions",
+    "boxes_in_frustum",
+    "buried_texels",
+    "consistent_samples",
+    "corner_rays",
+    "facing",
+    "frustum_extent",
+    "frustum_planes",
+    "pixel_rays",
+    "plane_groups",
+    "project_texels",
+    "unoccluded",
+]
 
 
 @dataclass(frozen=True)
@@ -217,142 +242,6 @@ def project_texels(
     return TexelProjection(uv=uv, depth=depth, distance=distance, cos_view=cos_view, ok=ok)
 
 
-@functools.lru_cache(maxsize=4)
-def pixel_rays(camera: Camera) -> np.ndarray:
-    """Unit rays `(H, W, 3)` float32 through every pixel centre, camera frame (distortion removed).
-
-    Cached per camera (read-only array); a frame's world rays are `rays @ R_world_from_camᵀ`.
-    """
-    uu, vv = np.meshgrid(
-        np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64)
-    )
-    rays = camera.bearing(np.stack([uu.ravel(), vv.ravel()], axis=1))
-    out = rays.reshape(camera.height, camera.width, 3).astype(np.float32)
-    out.flags.writeable = False
-    return out
-
-
-@functools.lru_cache(maxsize=4)
-def corner_rays(camera: Camera) -> np.ndarray:
-    """Unit rays `(H + 1, W + 1, 3)` float32 through every pixel corner (pixel `(u - ½, v - ½)`
-    at `[v, u]`), camera frame; cached per camera (read-only)."""
-    uu, vv = np.meshgrid(np.arange(camera.width + 1.0) - 0.5, np.arange(camera.height + 1.0) - 0.5)
-    rays = camera.bearing(np.stack([uu.ravel(), vv.ravel()], axis=1))
-    out = rays.reshape(camera.height + 1, camera.width + 1, 3).astype(np.float32)
-    out.flags.writeable = False
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class HitBuffer:
-    """What the pixels bilinear sampling reads see in one frame: first-hit distance and polygon,
-    stored flat (pixel `(v, u)` at `v · width + u`).
-
-    Attributes:
-        width, height: size of the cast grid (the image's divided by `step`, rounded up).
-        step: pixel step of the cast grid (grid element `(i, j)` is pixel `(i·step, j·step)`).
-        t: `(H·W,)` float32 distance from the projection centre to the first hit (inf: nothing,
-            or a pixel that was not cast).
-        polygon: `(H·W,)` int32 index into the scene's `polygon_ids` (-1: nothing / not cast).
-    """
-
-    width: int
-    height: int
-    step: int
-    t: np.ndarray
-    polygon: np.ndarray
-
-
-def _top_left(uv: np.ndarray, H: int, W: int, margin: int = 0) -> np.ndarray:
-    """Flat index `(N,)` of the top-left pixel of the 2x2 bilinear neighbourhood of `uv (N, 2)`
-    (clamped so that the neighbourhood, grown by `margin` pixels, lies inside the image)."""
-    c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp), margin, max(W - 2 - margin, margin))
-    r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp), margin, max(H - 2 - margin, margin))
-    return r0 * W + c0
-
-
-def _offsets(W: int, margin: int) -> np.ndarray:
-    """Flat offsets of the `(2 + 2·margin)²` pixels around a top-left pixel."""
-    k = np.arange(-margin, 2 + margin)
-    return (k[:, None] * W + k[None, :]).ravel()
-
-
-def consistent_samples(
-    buffer: HitBuffer,
-    uv: np.ndarray,
-    distance: np.ndarray,
-    group: int,
-    polygon_group: np.ndarray,
-    options: VisibilityOptions,
-    margin: int,
-    require: str = "all",
-) -> np.ndarray:
-    """`(N,)` bool: the cast-grid elements around `uv (N, 2)` — the 2x2 around the sample grown by
-    `margin` elements — all (`require="all"`; `"any"`: at least one) see the texel's own plane:
-    their first hit is a polygon of the
-    texel's plane `group` (see `plane_groups`) at the texel's `distance (N,)` within
-    `depth_tolerance_m + depth_tolerance_rel · distance`. `polygon_group (P + 1,)` maps polygon
-    index -> plane group, its last entry (index -1) is -1."""
-    W = buffer.width
-    lin = _top_left(uv / buffer.step, buffer.height, W, margin)
-    return _own_plane(buffer.t, buffer.polygon, lin, _offsets(W, margin), distance, group, polygon_group,
-                      options, every=require == "all")  # fmt: skip
-
-
-def _own_plane(
-    t: np.ndarray,
-    polygon: np.ndarray,
-    lin: np.ndarray,
-    offsets: np.ndarray,
-    distance: np.ndarray,
-    group: int,
-    polygon_group: np.ndarray,
-    options: VisibilityOptions,
-    every: bool = True,
-) -> np.ndarray:
-    """`(N,)` bool: the cast rays at flat indices `lin (N,) + offsets` (first-hit distance `t`,
-    polygon index `polygon`, flat) all (`every`; else at least one) hit the plane `group` at
-    `distance (N,)` within the depth tolerance."""
-    tol = options.depth_tolerance_m + options.depth_tolerance_rel * distance
-    ok = np.full(len(lin), every, dtype=bool)
-    for off in offsets:
-        j = lin + off
-        own = (polygon_group[polygon[j]] == group) & (np.abs(t[j] - distance) <= tol)
-        ok = (ok & own) if every else (ok | own)
-    return ok
-
-
-def plane_groups(mesh: SceneMesh, options: VisibilityOptions) -> np.ndarray:
-    """`(P,)` int: a plane id per polygon of `mesh`; polygons of one building lying in one plane
-    (normals within `coplanar_deg`, planes within `coplanar_m`) share it."""
-    P = mesh.n_polygons
-    group = np.arange(P)
-    if P == 0 or len(mesh.triangles) == 0:
-        return group
-    # a vertex of each polygon (local frame) for the plane offset
-    first = np.full(P, -1, np.int64)
-    first[mesh.triangle_polygon[::-1]] = mesh.triangles[::-1, 0]
-    has = first >= 0
-    offset = np.zeros(P)
-    offset[has] = np.einsum(
-        "ij,ij->i", mesh.polygon_normals[has], mesh.vertices[first[has]].astype(np.float64)
-    )
-    cos_tol = math.cos(math.radians(options.coplanar_deg))
-    by_building: dict[str, list[int]] = {}
-    for i, b in enumerate(mesh.polygon_building):
-        if has[i]:
-            by_building.setdefault(b, []).append(i)
-    for ids in by_building.values():
-        idx = np.array(ids)
-        n = mesh.polygon_normals[idx]
-        same = (n @ n.T > cos_tol) & (
-            np.abs(offset[idx][:, None] - offset[idx][None, :]) < options.coplanar_m
-        )
-        for a in range(len(idx)):  # smallest index of the connected set (planes are few per building)
-            group[idx[a]] = group[idx[np.nonzero(same[a])[0]]].min()
-    return group
-
-
 def buried_texels(
     raycaster: RayCaster, points: np.ndarray, normal: np.ndarray, offset_m: float = 0.02
 ) -> np.ndarray:
@@ -363,138 +252,13 @@ def buried_texels(
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
     n = np.asarray(normal, dtype=np.float64)
-    hits = raycaster.cast(
-        np.asarray(points, dtype=np.float64) + offset_m * n, np.broadcast_to(n, points.shape)
-    )
-    return hits.hit & (hits.normal @ n > 0.0)
-
-
-class OcclusionScene:
-    """Everything the per-texel occlusion test needs for one unit: the ray caster over the
-    scene mesh (building and occluders), the camera's pixel rays, and the scene index and plane
-    group of each polygon. Rays are built in float32 in the mesh's local frame (no float64
-    round trip). Not picklable; build one per unit."""
-
-    def __init__(
-        self, raycaster: RayCaster, camera: Camera, options: VisibilityOptions = VisibilityOptions()
-    ) -> None:
-        mesh = raycaster.mesh
-        self.mesh = mesh
-        self._raycaster = raycaster
-        self.step = max(1, options.buffer_step_px)
-        full = pixel_rays(camera)
-        self._rays = {1: full, self.step: np.ascontiguousarray(full[:: self.step, :: self.step])}
-        self.options = options
-        self._corners = corner_rays(camera) if options.pixel_area else None
-        self.polygon_index = mesh.polygon_index()
-        self.polygon_group = np.append(plane_groups(mesh, options), -1).astype(np.intp)
-
-    def buffer(self, pose: Pose, uv: np.ndarray, step: int = 1, margin: int = 0) -> HitBuffer:
-        """Cast the grid of every `step`-th pixel around `uv (N, 2)` (the 2x2 grid elements around
-        each sample grown by `margin`) from the projection centre of `pose` through the scene."""
-        grid = self._rays[step]
-        H, W = grid.shape[:2]
-        if len(uv) * (2 + 2 * margin) ** 2 >= H * W // 2:  # most of the grid: cast it all
-            pix = np.arange(H * W)
-        else:
-            need = np.zeros(H * W, dtype=np.uint8)
-            lin = _top_left(uv / step, H, W, margin)
-            for off in (0, 1, W, W + 1):
-                need[lin + off] = 1
-            if margin > 0:
-                k = 2 * margin + 1
-                need = cv2.dilate(need.reshape(H, W), np.ones((k, k), np.uint8)).ravel()
-            pix = np.flatnonzero(need)
-        t, poly = self._cast(pose, grid, pix)
-        return HitBuffer(width=W, height=H, step=step, t=t, polygon=poly)
-
-    def _cast(self, pose: Pose, grid: np.ndarray, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cast the rays of `grid (H, W, 3)` (camera frame) at flat indices `pix` from the projection
-        centre of `pose` -> `(t (H·W,) float32, polygon (H·W,) int32)`, inf / -1 where not cast."""
-        n = grid.shape[0] * grid.shape[1]
-        t = np.full(n, np.inf, np.float32)
-        poly = np.full(n, -1, np.int32)
-        if len(pix):
-            rays = np.empty((len(pix), 6), np.float32)
-            rays[:, :3] = (pose.center - self.mesh.origin).astype(np.float32)
-            rays[:, 3:] = grid.reshape(-1, 3)[pix] @ pose.R_world_from_cam.T.astype(np.float32)
-            t[pix], poly[pix] = self._raycaster.cast_local(rays)
-        return t, poly
-
-    def _corner_index(self, uv: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
-        """Flat index `(N,)` of the top-left corner of each sample's footprint (the 2x2 bilinear
-        pixels grown by `margin`) and the flat offsets of its `(3 + 2·margin)²` corners."""
-        assert self._corners is not None
-        H1, W1 = self._corners.shape[:2]
-        n = 3 + 2 * margin
-        c0 = np.clip(np.floor(uv[:, 0]).astype(np.intp) - margin, 0, max(W1 - n, 0))
-        r0 = np.clip(np.floor(uv[:, 1]).astype(np.intp) - margin, 0, max(H1 - n, 0))
-        k = np.arange(n)
-        return r0 * W1 + c0, (k[:, None] * W1 + k[None, :]).ravel()
-
-    def pure_footprint(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]],
-                       margin: int) -> list[np.ndarray]:
-        """Per surface `(N,)` bool: rays through every corner of the samples' footprint pixels
-        (the 2x2 bilinear pixels grown by `margin`) see the texel's own plane at its distance
-        (all True without `pixel_area`)."""
-        if self._corners is None or not samples:
-            return [np.ones(len(uv), bool) for uv, _, _ in samples]
-        H1, W1 = self._corners.shape[:2]
-        need = np.zeros(H1 * W1, np.bool_)
-        for uv, _, _ in samples:
-            lin, offs = self._corner_index(uv, margin)
-            for off in offs:
-                need[lin + off] = True
-        t, poly = self._cast(pose, self._corners, np.flatnonzero(need))
-        return [
-            _own_plane(t, poly, *self._corner_index(uv, margin), d, g, self.polygon_group, self.options)
-            for uv, d, g in samples
-        ]
-
-    def visible(self, pose: Pose, samples: Sequence[tuple[np.ndarray, np.ndarray, int]]) -> list[np.ndarray]:
-        """Occlusion and silhouette test of a frame's texel samples, per surface.
-
-        Args:
-            samples: per surface `(uv (N, 2), distance (N,), plane group)`.
-
-        Returns per surface `(N,)` bool: the pixels bilinear sampling reads and `blur_margin_px`
-        around them see the texel's own plane. With `buffer_step_px > 1` a coarse grid decides
-        first: samples whose coarse neighbourhood (2x2 grown by one element) is all own plane
-        pass, those whose coarse 2x2 shows no own plane at all fail, and those in between (near
-        a silhouette) are tested at full resolution.
-        """
-        o = self.options
-        if not samples:
-            return []
-        all_uv = np.concatenate([uv for uv, _, _ in samples])
-        if self.step == 1:
-            buf = self.buffer(pose, all_uv, 1, o.blur_margin_px)
-            pure = self.pure_footprint(pose, samples, o.blur_margin_px)
-            return [
-                consistent_samples(buf, uv, d, g, self.polygon_group, o, o.blur_margin_px) & p
-                for (uv, d, g), p in zip(samples, pure, strict=True)
-            ]
-        coarse = self.buffer(pose, all_uv, self.step, 1)
-        out, near = [], []
-        for uv, d, g in samples:
-            core = consistent_samples(coarse, uv, d, g, self.polygon_group, o, 0)
-            ring = core.copy()
-            ring[core] = consistent_samples(coarse, uv[core], d[core], g, self.polygon_group, o, 1)
-            some = consistent_samples(coarse, uv, d, g, self.polygon_group, o, 0, require="any")
-            out.append(ring)
-            near.append(np.nonzero(some & ~ring)[0])
-        if sum(len(n) for n in near):
-            fine = self.buffer(
-                pose,
-                np.concatenate([uv[n] for (uv, _, _), n in zip(samples, near, strict=True)]),
-                1,
-                o.blur_margin_px,
-            )
-            subs = [(uv[n], d[n], g) for (uv, d, g), n in zip(samples, near, strict=True)]
-            pure = self.pure_footprint(pose, subs, o.blur_margin_px)
-            for k, (uv, d, g) in enumerate(subs):
-                if len(uv):
-                    out[k][near[k]] = consistent_samples(
-                        fine, uv, d, g, self.polygon_group, o, o.blur_margin_px
-                    ) & pure[k]
-        return out
+    mesh = raycaster.mesh
+    rays = np.empty((len(points), 6), np.float32)  # in the mesh's local frame, float32 (cast_local)
+    rays[:, :3] = np.asarray(points, dtype=np.float64) + (offset_m * n - mesh.origin)
+    rays[:, 3:] = n
+    _, polygon = raycaster.cast_local(rays)
+    hit = polygon >= 0
+    # a triangle's normal is its polygon's (triangles are wound like their polygon's ring)
+    behind = np.zeros(len(points), dtype=bool)
+    behind[hit] = mesh.polygon_normals[polygon[hit]] @ n > 0.0
+    return behind
