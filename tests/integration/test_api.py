@@ -46,8 +46,9 @@ def test_landing_conformance_processes_openapi(api: ApiServer) -> None:
         desc = c.get("/processes/texture").json()
         assert set(desc["inputs"]) == {
             "model", "sequence", "theme", "resolution", "buildings", "refine", "calibrate", "orient",
-            "anomalies",
+            "orientation", "anomalies",
         }  # fmt: skip
+        assert desc["inputs"]["orientation"]["schema"]["enum"] == ["edges", "sfm", "both"]
         assert desc["inputs"]["model"]["minOccurs"] == 1 and desc["inputs"]["theme"]["minOccurs"] == 0
         assert desc["outputs"]["results"]["schema"]["contentMediaType"] == "application/zip"
         assert_problem(c.get("/processes/other"), 404)
