@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from db.sequence_manifest import (
+from db.sequence_fields import (
     PackageError,
     _accuracy,
     _camera,

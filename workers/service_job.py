@@ -25,7 +25,6 @@ fails the job as `<type>: <message>`.
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import os
@@ -33,7 +32,6 @@ import shutil
 import time
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -41,7 +39,7 @@ from typing import Any
 import kombu.exceptions
 import redis.exceptions
 import sqlalchemy.exc
-from sqlalchemy import Engine, text
+from sqlalchemy import text
 from sqlalchemy.orm import Session
 
 from db import jobs
@@ -52,11 +50,9 @@ from db.model_load import ModelBuildingIds, iter_model_buildings, near_box
 from db.result_load import load_building_result
 from db.results_folder.write import write_tile
 from db.sequence_package import PackageError
-from db.session import make_engine
-from db.settings import Settings
 from db.store import store_building_result
 from workers import service_storage as storage
-from workers.celery_app import app, stale_after_s
+from workers.celery_app import stale_after_s
 from workers.job import (
     Calibrated,
     Ingested,
@@ -80,6 +76,8 @@ from workers.pipeline.geometry.transform import CrsTransformError
 from workers.pipeline.options import OptionsError
 from workers.pipeline.results import BuildingResult
 from workers.run import without_pixels
+from workers.service_process import engine, job_dir, job_lock, send, settings
+from workers.service_windows import celery_window_map
 
 log = logging.getLogger(__name__)
 
@@ -93,56 +91,6 @@ TRANSIENT: tuple[type[BaseException], ...] = (
 BAD_INPUT: tuple[type[BaseException], ...] = (
     *(InputDataError, PackageError, CityGMLError, RunError, OptionsError, CrsTransformError, UnknownCRSError),
 )
-
-
-# -- the process's settings, database and storage ----------------------------------------------
-@functools.cache
-def settings() -> Settings:
-    """This process's settings (read once, from the environment)."""
-    return Settings()
-
-
-_ENGINE: dict[int, Engine] = {}
-_INHERITED: list[Engine] = []  # a parent's engines: kept, so their connections are never closed here
-
-
-def engine() -> Engine:
-    """This process's database engine (a forked worker process makes its own)."""
-    pid = os.getpid()
-    if pid not in _ENGINE:
-        _INHERITED.extend(_ENGINE.values())
-        _ENGINE.clear()
-        _ENGINE[pid] = make_engine(settings())
-    return _ENGINE[pid]
-
-
-def job_dir(job_id: uuid.UUID | str) -> Path:
-    """This job's folder in the storage directory."""
-    return storage.job_dir(settings().storage_dir, job_id)
-
-
-def send(name: str, *args: Any, task_id: str | None = None) -> str:
-    """Queue task `name` with `args` (ids only); returns its task id."""
-    return str(app.send_task(name, args=args, task_id=task_id or str(uuid.uuid4())).id)
-
-
-@contextmanager
-def job_lock(kind: str, job_id: uuid.UUID) -> Iterator[bool]:
-    """A session-level advisory lock `citytherm-<kind>:<job id>` on a connection of its own, held
-    while the block runs; yields False when another session holds it."""
-    with engine().connect() as conn:
-        key = {"k": f"citytherm-{kind}:{job_id}"}
-        got = bool(conn.execute(text("SELECT pg_try_advisory_lock(hashtext(:k))"), key).scalar())
-        conn.commit()
-        try:
-            yield got
-        finally:
-            if got:
-                try:
-                    conn.execute(text("SELECT pg_advisory_unlock(hashtext(:k))"), key)
-                    conn.commit()
-                except Exception:  # closing the connection releases it
-                    conn.invalidate()
 
 
 def max_deliveries() -> int:
@@ -237,8 +185,6 @@ def _run_stages(job: jobs.JobRecord) -> tuple[Prepared, tuple[Any, ...], dict[in
         calibrated = calibrate(ingested, options)
     _stage(job.id, "orient")
     t0 = time.perf_counter()
-    from workers.service_windows import celery_window_map  # it imports this module
-
     oriented = orient(ingested, calibrated, options, caster=caster, map_windows=celery_window_map(job.id))
     if oriented.report.get("run"):
         timings["orient"] = time.perf_counter() - t0

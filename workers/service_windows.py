@@ -9,7 +9,7 @@ How (`celery_window_map`, the prepare task's `map_windows`): the prepare task wr
 task to `jobs/<id>/windows/<k>.task.pkl` and queues `citytherm.orient_window(job id, k)` for
 each (ids only); then it works through the windows itself, in order, taking every window no other
 worker holds, and waits for the others. Whoever runs window k holds the session-level advisory
-lock `citytherm-window-<k>:<job id>` (`service_job.job_lock`) and writes
+lock `citytherm-window-<k>:<job id>` (`service_process.job_lock`) and writes
 `jobs/<id>/windows/<k>.result.pkl` atomically before releasing it; a window whose result exists is
 never run again. So a window runs once at a time and its result is reused by a repeated delivery
 of the prepare task; a worker SIGKILLed in a window drops its connection and so its lock, and the
@@ -34,7 +34,7 @@ from sqlalchemy.orm import Session
 from db import jobs
 from workers import service_storage as storage
 from workers.pipeline.orientation.sequence import WindowMap, WindowResult, WindowTask, orient_window
-from workers.service_job import engine, job_dir, job_lock, send
+from workers.service_process import engine, job_dir, job_lock, send
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -26,17 +26,49 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.manifest import FrameSource
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster, SceneMesh
-from workers.pipeline.orientation.block import adjust_block, block_reason
+from workers.pipeline.orientation.block import BlockOptions, adjust_block, block_reason
+from workers.pipeline.orientation.building_options import CoregisterOptions
 from workers.pipeline.orientation.bundle import BundleResult
 from workers.pipeline.orientation.priors import frame_noise_information
-from workers.pipeline.orientation.sequence_acceptance import Confirmation, confirm_block
+from workers.pipeline.orientation.sequence_acceptance import Confirmation, ConfirmOptions, confirm_block
 from workers.pipeline.orientation.tracks import Tracks
 from workers.pipeline.orientation.wireframe import Wireframe, mesh_wireframe
 
-if TYPE_CHECKING:
-    from workers.pipeline.orientation.sequence import SequenceOrientationOptions
+__all__ = ["SequenceOrientationOptions", "WindowResult", "WindowTask", "orient_window"]
 
-__all__ = ["WindowResult", "WindowTask", "orient_window"]
+@dataclass(frozen=True)
+class SequenceOrientationOptions:
+    """Parameters of the sequence orientation (frames, seconds)."""
+
+    block: BlockOptions = field(default_factory=BlockOptions)
+    # the prior's σ (metres, degrees) come from the accuracy as for a building unit, the per-frame
+    # deviation and the null shift from its `prior`
+    coregister: CoregisterOptions = field(default_factory=CoregisterOptions)
+    # windows of consecutive frames, their overlap (a frame near a window's end has less context:
+    # it takes its pose from the neighbouring window), a gap longer than this splits the sequence
+    window_frames: int = 120
+    overlap_frames: int = 30
+    max_gap_s: float = 1.0
+    # when the priors' white noise (`smoothing.prior_noise`) exceeds `noisy_factor` × the
+    # per-frame σ of `coregister.prior`, the start poses of tracking and adjustment are the
+    # priors smoothed over time with this Gaussian σ (seconds; 0: never) and the per-frame σ is
+    # raised to the noise. The factor keeps drives out: their corners turn 30–60°/s, which a
+    # local linear fit over a second bends by degrees (a calibrated drive whose noise measured
+    # 0.30 m lost two frames so), and their default noise (0.2 m) measures up to 0.3 m
+    start_smoothing_s: float = 1.0
+    noisy_factor: float = 1.5
+    # which frames of an adjusted block are confirmed (`sequence_acceptance`: edges where they
+    # exist, planes and tracks where they do not, consistency with the priors)
+    confirm: ConfirmOptions = field(default_factory=ConfirmOptions)
+
+    def __post_init__(self) -> None:
+        if self.window_frames < 2 or not 0 <= self.overlap_frames < self.window_frames:
+            raise ValueError(
+                f"windows of {self.window_frames} frames overlapping by {self.overlap_frames}: "
+                "need at least 2 frames and an overlap smaller than the window"
+            )
+
+
 
 #: per process: the scene of the last plan whose windows ran here, `(scene_key, caster, wireframe)`
 _SCENE: list[tuple[str, RayCaster, Wireframe]] = []

@@ -27,7 +27,7 @@ from workers.pipeline.texture.fused import SurfaceTexture
 from workers.pipeline.texture.visibility import VisibilityOptions, boxes_in_frustum, frustum_extent
 
 if TYPE_CHECKING:  # fusion imports this module
-    from workers.pipeline.texture.fusion import SurfaceTexels
+    from workers.pipeline.texture.surface_texels import SurfaceTexels
 
 
 @dataclass(frozen=True, eq=False)

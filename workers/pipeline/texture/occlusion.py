@@ -20,7 +20,6 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -28,9 +27,8 @@ import numpy as np
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster, SceneMesh
+from workers.pipeline.texture.visibility_options import VisibilityOptions
 
-if TYPE_CHECKING:  # visibility imports this module (re-exports)
-    from workers.pipeline.texture.visibility import VisibilityOptions
 
 @functools.lru_cache(maxsize=4)
 def pixel_rays(camera: Camera) -> np.ndarray:
