@@ -302,3 +302,39 @@ def test_synthetic_drive_default_errors_calibration_or_fallback(synth_drive):
     assert np.mean(after < before) >= 0.85
     assert np.median(after) < 3.0
     assert not np.any((status == "refined") & (after > before))
+
+
+def test_units_take_the_sequence_poses_where_the_building_shows_none_of_its_edges() -> None:
+    """A building whose edges the frames do not show (blank frames here; in the 300-frame NRW drive
+    a building seen behind others, support 0.1 at its true poses): its own edges can neither confirm
+    nor contradict the sequence's poses, which stand on their covariance; poses a metre off, where
+    its edges are seen, are still rejected (`block.refine_from_sequence`)."""
+    from tests.unit.test_orient_sequence import N, _cluster_frames
+    from workers.pipeline.orientation.block import UnitSequence, refine_from_sequence
+    from workers.pipeline.orientation.sequence import SequenceOrientationOptions, orient_sequence
+    from workers.pipeline.orientation.wireframe import building_wireframe
+    from workers.pipeline.synth import SynthOptions, procedural_block, synthesize
+
+    res = synthesize(procedural_block(6, seed=1),
+                     SynthOptions(platform="drive", n_frames=N, seed=1, buildings=2))
+    images = {i: res.frames.load(i) for i in range(N)}
+    T, cam = res.truth.poses, res.manifest.camera
+    rng = np.random.default_rng(5)
+    prior = {i: perturb(t, np.array([0.4, -0.3, 0.3]) + rng.normal(0, 0.2, 3),
+                        np.array([0.3, -0.4, 0.2]) + rng.normal(0, 0.15, 3)) for i, t in enumerate(T)}
+    times = {i: f.time for i, f in enumerate(res.manifest.frames)}
+    caster = RayCaster(res.mesh)
+    acc = Accuracy(position_m=np.full(3, 0.5), attitude_deg=np.full(3, 0.5))
+    so = orient_sequence(cam, caster, list(range(N)), MemoryFrames(images), prior, times, acc,
+                         SequenceOrientationOptions(window_frames=16, overlap_frames=8))
+    b, seen = _cluster_frames(res)[0]
+    part = so.for_frames(seen)
+    blank = {i: np.full_like(images[i], float(np.median(images[i]))) for i in seen}
+    out, reason = refine_from_sequence(cam, building_wireframe(b), caster, seen, blank, prior, part)
+    refined = [i for i in seen if out[i].status == "refined"]
+    assert reason == "" and len(refined) >= 0.9 * len(seen), (reason, len(refined), len(seen))
+    assert all(out[i].pose is part.poses[i] for i in refined)
+    off = {i: Pose(p.R_world_from_cam, p.center + np.array([1.0, 1.0, 0.0])) for i, p in part.poses.items()}
+    wrong = UnitSequence(off, part.covariance, part.ties, part.tie_rms_px)
+    out, reason = refine_from_sequence(cam, building_wireframe(b), caster, seen, images, prior, wrong)
+    assert reason and all(out[i].status == "prior" for i in seen)

@@ -100,13 +100,17 @@ class BundleOptions:
     # Gauss-Newton iterations before and after the outlier removal (undamped: Levenberg damping of
     # the diagonal slowed the weak directions, a tilt traded against a height that only a few
     # inclined edges see, from 0.18 px to 3.6 px after ten iterations; the steps are bounded to
-    # `max_step_deg` and `max_step_m` instead)
+    # `max_step_deg` and `max_step_m` instead; after the outlier removal a frame held off by a
+    # mismatched tie comes back by degrees: 4 polish iterations left it moving 0.4 m per step)
     iterations: int = 12
-    polish_iterations: int = 4
+    polish_iterations: int = 8
     max_step_deg: float = 2.0
     max_step_m: float = 1.0
-    # tie observations of points nearer than this along the optical axis (or behind) are left out
+    # tie observations of points nearer than this along the optical axis (or behind), and of tracks
+    # with fewer inlier observations in the block, are left out; σ of the points' step damping (m)
     min_depth_m: float = 0.5
+    min_track_observations: int = 2
+    point_step_sigma_m: float = 100.0
     # a phase has converged when no frame moves by more than this (metres; rotations as the
     # motion they cause at 10 m)
     converged_m: float = 5e-4
@@ -244,8 +248,9 @@ def _adjust(
     converged = True
     for it in range(options.iterations + options.polish_iterations):
         R_e = max(fit_options.edge_radius_min_px, options.edge_radius_start_px * options.radius_decay ** it)
+        use = _tied(inl, t_obs, len(X), options.min_track_observations)
         S, b, V_inv, Wt, bt = _normal_system(camera, frames, poses, prior, frame_info, common_info, common,
-                                             f_obs[inl], t_obs[inl], uv_obs[inl], X, nrm, d_plane, w_tie,
+                                             f_obs[use], t_obs[use], uv_obs[use], X, nrm, d_plane, w_tie,
                                              w_plane, options)
         if edges:
             _add_edge_equations(S, b, camera, wf, raycaster, edges, poses, slot, it, R_e,  # type: ignore[arg-type]
@@ -261,7 +266,7 @@ def _adjust(
         if nc:
             common = common + dx[6 * n:]
         if len(Wt):
-            X = X + _point_steps(V_inv, Wt, bt, steps[f_obs[inl]], t_obs[inl])
+            X = X + _point_steps(V_inv, Wt, bt, steps[f_obs[use]], t_obs[use])
         # converged: steps below `converged_m` (rotations as metres at 10 m), the edge search at its
         # final radius; then the outliers go and the polish runs to convergence
         k_phase += 1
@@ -281,6 +286,13 @@ def _adjust(
     return BundleResult(poses=poses, covariance=cov, ties=ties, tie_rms_px=tie_rms, edge_rms_px=edge_rms,
                         edge_support=support, null_support=null, matched_edges=matched, points=X, inlier=inl,
                         sigma0=sigma0, converged=converged and factored)
+
+
+def _tied(inl: np.ndarray, t_obs: np.ndarray, n_tracks: int, k: int) -> np.ndarray:
+    """`(M,)` bool: the inlier observations `inl` of tracks (`t_obs` `(M,)`) with at least `k`
+    of them: a point seen once ties nothing (its elimination only cancels its own observation)."""
+    counts = np.bincount(t_obs[inl], minlength=n_tracks)
+    return inl & (counts[t_obs] >= k)
 
 
 def _bounded(dx: np.ndarray, options: BundleOptions) -> np.ndarray:
@@ -437,8 +449,11 @@ def _normal_system(
     wp = w_plane * np.where(x < 1, (1 - x * x) ** 2, 0.0)
     V += wp[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
     bt += (wp * rp)[:, None] * nrm
-    # a weak prior on every point keeps V invertible (a point seen from nearly one direction)
-    V += np.eye(3)[None] * 1e-6
+    # damping of every point's step (a point seen from nearly one direction without plane weight:
+    # with 1e-6 m⁻² its V had a condition of 1e12, and the inverse's rounding made a frame's block
+    # of S indefinite on a 300-frame NRW drive, -7e3 against 3e7, ending the adjustment); 1e-4
+    # suffices there, 1e-2 held points kilometres away (tests/unit/test_bundle.py)
+    V += np.eye(3)[None] * options.point_step_sigma_m ** -2
     Wt = np.zeros((M, 6, 3))
     if M:
         Jf = np.zeros((M, 2, 6))
