@@ -46,6 +46,7 @@ from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.quality import tie_errors
 from workers.pipeline.orientation.smoothing import smooth_poses
 from workers.pipeline.orientation.tracks import Tracks, track_sequence
+from workers.pipeline.reconstruction.colmap import colmap_camera
 from workers.pipeline.synth import SynthOptions, synthesize
 
 
@@ -55,19 +56,7 @@ def reconstruction(camera: Camera, tracks: Tracks, poses: Mapping[int, Pose], n:
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    params = [
-        camera.fx,
-        camera.fy,
-        camera.cx + 0.5,
-        camera.cy + 0.5,
-        camera.k1,
-        camera.k2,
-        camera.p1,
-        camera.p2,
-    ]
-    rec.add_camera_with_trivial_rig(
-        pycolmap.Camera(model="OPENCV", width=camera.width, height=camera.height, params=params, camera_id=1)
-    )
+    rec.add_camera_with_trivial_rig(colmap_camera(camera))
     where: dict[int, tuple[int, int]] = {}
     for f in range(n):
         obs = np.flatnonzero(tracks.frame == f)
