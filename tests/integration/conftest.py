@@ -21,6 +21,13 @@ REDIS_URL = os.environ.get("CITYTHERM_TEST_REDIS", "redis://127.0.0.1:6379/15")
 TEST_SRID = int(os.environ.get("CITYTHERM_TEST_SRID", "25833"))
 
 
+def scalar(url: str, sql: str, params: tuple = ()) -> object:
+    """The first column of the first row of `sql` on the database at `url` (None: no row)."""
+    with psycopg.connect(url, autocommit=True) as c:
+        row = c.execute(sql, params).fetchone()
+    return None if row is None else row[0]
+
+
 def _admin_conn() -> psycopg.Connection:
     return psycopg.connect(f"{PG_SERVER}/postgres", autocommit=True)
 

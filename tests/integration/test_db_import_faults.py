@@ -4,8 +4,7 @@ SIGKILL while it writes batches and in its final step. Afterwards no model is le
 nothing of the stopped import is in the tables, the spatial indexes are in place and valid, the
 reader process is gone, no connection is left (idle in transaction or otherwise), and an import
 of the same name succeeds; a reader's spatial queries use the indexes and see no partial model
-while an import runs; `citytherm db repair` and the next import remove models left `importing`
-by dead imports (an older version's), which the GIS views never show.
+while an import runs. Models left `importing` by dead imports: `test_db_dead_imports.py`.
 
 The kill points are chosen by watching the importer's progress lines (`--progress`: the rows it
 writes are in its own uncommitted transaction, invisible to a count from another connection) and,
@@ -15,7 +14,6 @@ importer is caught waiting in its final step (seen in `pg_stat_activity`).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import queue
@@ -25,7 +23,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import psycopg
@@ -34,9 +31,10 @@ from typer.testing import CliRunner
 
 from db.errors import ModelExistsError
 from db.importer import ImportOptions, import_citygml
-from db.ops import IMPORT_MODEL_LOCK, SPATIAL_INDEXES
+from db.ops import SPATIAL_INDEXES
 from services.cli import app
-from tests.conftest import DATA, REPO
+from tests.conftest import DATA, REPO, replicated_nrw
+from tests.integration.conftest import scalar
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -47,17 +45,9 @@ PROGRESS = re.compile(r"progress: (\w+) (\d+) buildings (\d+) parts")
 DEADLINE_S = 120.0  # generous bound for anything to happen on a busy machine
 
 
-def _replicate(dst: Path, copies: int) -> Path:
-    spec = importlib.util.spec_from_file_location("citygml_io_bench", REPO / "bench" / "citygml_io.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.make_replicated_model(NRW, dst, copies)
-
-
 @pytest.fixture(scope="module")
 def big_file(tmp_path_factory) -> Path:
-    return _replicate(tmp_path_factory.mktemp("faults") / "nrw-replicated.gml", COPIES)
+    return replicated_nrw(tmp_path_factory.mktemp("faults") / "nrw-replicated.gml", COPIES)
 
 
 @pytest.fixture(scope="module")
@@ -66,12 +56,6 @@ def keep_model(db_engine) -> dict:
     replicated file's first copy lies on it)."""
     s = import_citygml(db_engine, NRW, name="faults-keep", options=ImportOptions(parallel_read=False))
     return {"id": s.model_id, "buildings": s.buildings, "parts": s.parts, "surfaces": s.surfaces}
-
-
-def _one(url: str, sql: str, params: tuple = ()) -> object:
-    with psycopg.connect(url, autocommit=True) as c:
-        row = c.execute(sql, params).fetchone()
-    return None if row is None else row[0]
 
 
 def _children(pid: int) -> list[int]:
@@ -110,7 +94,7 @@ class _CliImport:
 
     def __init__(self, url: str, path: Path, name: str, *extra: str) -> None:
         self.url = url
-        self.server_start = _one(url, "SELECT now()")
+        self.server_start = scalar(url, "SELECT now()")
         self.proc = subprocess.Popen(
             [sys.executable, "-c", "from services.cli import main; main()", "import", str(path),
              "--name", name, "--progress", "--database-url", url, *extra],
@@ -237,7 +221,7 @@ def test_kill_while_writing_batches(migrated_db, db_engine, big_file, keep_model
     if share < 0.5:  # later, the reader may have sent its last batch and ended already
         assert _children(imp.proc.pid), "the big file is read by a reader process"
     # the import's rows are in its own transaction: nobody else sees them
-    assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE name = %s", (name,)) == 0
+    assert scalar(migrated_db, "SELECT count(*) FROM city_model WHERE name = %s", (name,)) == 0
     code, err, readers = _kill(imp, sig, group)
     if sig == signal.SIGKILL:
         assert code == -signal.SIGKILL
@@ -374,102 +358,6 @@ def test_reader_keeps_its_index_during_an_import_and_the_name_imports_again(
         c.execute("DELETE FROM city_model WHERE name = %s", (name,))  # cascades
 
 
-def _thermal_rows(conn: psycopg.Connection, model_id: int) -> None:
-    """One textured surface with thermal statistics (what a job writes), for the GIS views."""
-    sid, bid = conn.execute(
-        "SELECT s.id, b.id FROM surface s JOIN building b ON b.id = s.building_id "
-        "WHERE s.city_model_id = %s AND NOT b.is_part ORDER BY s.id LIMIT 1",
-        (model_id,),
-    ).fetchone()
-    aid = conn.execute(
-        "INSERT INTO appearance (city_model_id, building_id, theme, ordinal) "
-        "VALUES (%s, %s, 'thermal-ir', 0) RETURNING id",
-        (model_id, bid),
-    ).fetchone()[0]
-    sdid = conn.execute(
-        "INSERT INTO surface_data (appearance_id, ordinal, kind, is_front) "
-        "VALUES (%s, 0, 'ParameterizedTexture', true) RETURNING id",
-        (aid,),
-    ).fetchone()[0]
-    conn.execute(
-        "INSERT INTO texture_param (surface_data_id, ordinal, target_gml_id, surface_id) "
-        "VALUES (%s, 0, 'x', %s)",
-        (sdid, sid),
-    )
-    conn.execute(
-        "INSERT INTO surface_thermal (appearance_id, surface_id, texels_total, texels_observed, "
-        "observed_share, frames_used, mean_k, temperature) VALUES (%s, %s, 10, 5, 0.5, '{1}', 280.0, '{}')",
-        (aid, sid),
-    )
-
-
-def _view_rows(url: str, model_id: int) -> tuple[int, int]:
-    with psycopg.connect(url, autocommit=True) as c:
-        return c.execute(
-            "SELECT (SELECT count(*) FROM facade_thermal WHERE city_model_id = %(m)s), "
-            "(SELECT count(*) FROM building_thermal WHERE city_model_id = %(m)s)",
-            {"m": model_id},
-        ).fetchone()
-
-
-@pytest.fixture()
-def dead_import(migrated_db, db_engine) -> Iterator[int]:
-    """A model left `importing` by a dead import of an older version (which committed batch by
-    batch and dropped the spatial indexes): a half-written model with thermal rows."""
-    s = import_citygml(db_engine, DATA / "bavaria-1-building-citygml2-lod2.gml", name="faults-dead")
-    with psycopg.connect(migrated_db) as c:
-        _thermal_rows(c, s.model_id)
-    assert _view_rows(migrated_db, s.model_id) == (1, 1)
-    with psycopg.connect(migrated_db) as c:
-        c.execute("UPDATE city_model SET state = 'importing' WHERE id = %s", (s.model_id,))
-    yield s.model_id
-    with psycopg.connect(migrated_db) as c:
-        c.execute("DELETE FROM city_model WHERE id = %s", (s.model_id,))
-
-
-def test_views_hide_and_repair_removes_a_dead_import(migrated_db, dead_import) -> None:
-    m = dead_import
-    assert _view_rows(migrated_db, m) == (0, 0)  # the views show complete models only
-    with psycopg.connect(migrated_db, autocommit=True) as c:
-        c.execute("DROP INDEX ix_surface_geometry")  # as an older version's import did
-    runner = CliRunner()
-    url = ["--database-url", migrated_db]
-    res = runner.invoke(app, ["db", "repair", "--dry-run", *url])
-    assert res.exit_code == 0, res.output
-    out = " ".join(res.output.split())
-    assert f"model faults-dead (id {m}, 'importing'): would remove (1 buildings, 0 parts, 84 surfaces)" in out
-    assert "ix_surface_geometry on surface(geometry) missing: would rebuild" in out
-    assert _one(migrated_db, "SELECT count(*) FROM surface WHERE city_model_id = %s", (m,)) == 84
-    # an import still running holds its model's lock: left alone
-    with psycopg.connect(migrated_db, autocommit=True) as owner:
-        owner.execute("SELECT pg_advisory_lock(%s, %s)", (IMPORT_MODEL_LOCK, m))
-        res = runner.invoke(app, ["db", "repair", *url])
-        assert res.exit_code == 0, res.output
-        assert "left alone (import running)" in res.output
-        assert _one(migrated_db, "SELECT state FROM city_model WHERE id = %s", (m,)) == "importing"
-    res = runner.invoke(app, ["db", "repair", *url])
-    assert res.exit_code == 0, res.output
-    out = " ".join(res.output.split())
-    assert f"model faults-dead (id {m}, 'importing'): removed (1 buildings, 0 parts, 84 surfaces)" in out
-    assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE id = %s", (m,)) == 0
-    assert _one(migrated_db, "SELECT count(*) FROM surface WHERE city_model_id = %s", (m,)) == 0
-    assert _one(migrated_db, "SELECT count(*) FROM building WHERE city_model_id = %s", (m,)) == 0
-    assert _one(
-        migrated_db, "SELECT indisvalid FROM pg_index WHERE indexrelid = to_regclass('ix_surface_geometry')"
-    )
-    res = runner.invoke(app, ["db", "repair", *url])
-    assert res.exit_code == 0 and "nothing to repair" in res.output
-
-
-def test_next_import_removes_a_dead_import(migrated_db, db_engine, dead_import) -> None:
-    s = import_citygml(db_engine, DATA / "fzk-haus-citygml3-lod2.gml", name="faults-next")
-    assert s.removed_dead_imports == 1
-    assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE id = %s", (dead_import,)) == 0
-    assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE state <> 'complete'") == 0
-    with psycopg.connect(migrated_db, autocommit=True) as c:
-        c.execute("DELETE FROM city_model WHERE id = %s", (s.model_id,))
-
-
 def _fd_targets(pid: int) -> set[str]:
     """What the open file descriptors of process `pid` point to (`socket:[...]`, paths); a
     descriptor closed while it is listed is passed over."""
@@ -533,14 +421,14 @@ def test_sigterm_in_process_rolls_back_and_restores_handlers(migrated_db, db_eng
             signal.raise_signal(signal.SIGTERM)
 
     monkeypatch.setattr(importer_mod, "_write_lines", second_batch_signalled)
-    before = _one(migrated_db, "SELECT count(*) FROM building")
+    before = scalar(migrated_db, "SELECT count(*) FROM building")
     with pytest.raises(importer_mod.ImportInterrupted) as info:
         import_citygml(db_engine, NRW, name="faults-inproc", options=ImportOptions(batch_size=20))
     assert info.value.signum == signal.SIGTERM and calls["n"] == 2
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    assert _one(migrated_db, "SELECT count(*) FROM city_model WHERE name = 'faults-inproc'") == 0
-    assert _one(migrated_db, "SELECT count(*) FROM building") == before
+    assert scalar(migrated_db, "SELECT count(*) FROM city_model WHERE name = 'faults-inproc'") == 0
+    assert scalar(migrated_db, "SELECT count(*) FROM building") == before
 
 
 def test_a_signal_from_the_commit_on_waits_for_the_end() -> None:

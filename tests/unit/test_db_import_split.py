@@ -4,7 +4,6 @@ appearances, buildings without `gml:id`, errors), and error lines are the file's
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -19,23 +18,14 @@ from db.citygml.names import CityGMLError
 from db.import_rows import batch_lines
 from db.import_split import Spliced, first_half, plan_split, second_half
 from db.import_stream import BatchStream
+from tests.conftest import REPO, replicated_nrw
 
-REPO = Path(__file__).resolve().parents[2]
-NRW = REPO / "tests" / "data" / "nrw-tile-5659-citygml1-lod2.gml"
 COPIES = 4  # 436 buildings, 220 parts, ~9.5 MB
-
-
-def _replicate(dst: Path, copies: int) -> Path:
-    spec = importlib.util.spec_from_file_location("citygml_io_bench", REPO / "bench" / "citygml_io.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.make_replicated_model(NRW, dst, copies)
 
 
 @pytest.fixture(scope="module")
 def model(tmp_path_factory) -> Path:
-    return _replicate(tmp_path_factory.mktemp("split") / "nrw-4.gml", COPIES)
+    return replicated_nrw(tmp_path_factory.mktemp("split") / "nrw-4.gml", COPIES)
 
 
 def _rows(path: Path, split: int | None, batch_size: int = 50) -> tuple[list[str], list[str], str | None]:
