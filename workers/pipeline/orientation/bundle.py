@@ -43,7 +43,7 @@ a-posteriori variance factor (≥ 1).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -58,6 +58,7 @@ from workers.pipeline.orientation.bundle_system import (
     single_threaded_blas,
     solve_reduced,
 )
+from workers.pipeline.orientation.bundle_types import BundleOptions, BundleResult
 from workers.pipeline.orientation.edge_observations import (
     FrameEdges,
     FrameWireframes,
@@ -72,83 +73,6 @@ from workers.pipeline.orientation.tracks import Tracks
 from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 
 __all__ = ["BundleOptions", "BundleResult", "bundle_adjust", "track_pairs"]
-
-
-@dataclass(frozen=True)
-class BundleOptions:
-    """Parameters of the bundle adjustment (pixels, metres)."""
-
-    # tie points: standard deviation, Huber threshold (both px); observations beyond
-    # `outlier_px` after convergence are dropped
-    tie_sigma_px: float = 0.15
-    tie_huber_px: float = 0.3
-    outlier_px: float = 2.0
-    # planes: standard deviation and the Tukey constant of the distance re-weighting (m)
-    plane_sigma_m: float = 0.05
-    plane_tukey_m: float = 0.5
-    # model edges: on/off, weight of the edge normal equations, search radius at the start
-    # (shrinks by `radius_decay` to the frame fit's minimum), visibility recomputed every n-th
-    # iteration and for the final figures, unless no visible sample moved more than
-    # `visibility_reuse_px` in the image since it was last computed (0: always recomputed;
-    # hidden-edge removal and sample spacing are a visibility decision, not a derivative)
-    edges: bool = True
-    edge_weight: float = 1.0
-    edge_radius_start_px: float = 16.0
-    radius_decay: float = 0.75
-    revisibility_every: int = 4
-    visibility_reuse_px: float = 0.5
-    # Gauss-Newton iterations before and after the outlier removal (undamped: Levenberg damping of
-    # the diagonal slowed the weak directions, a tilt traded against a height that only a few
-    # inclined edges see, from 0.18 px to 3.6 px after ten iterations; the steps are bounded to
-    # `max_step_deg` and `max_step_m` instead; after the outlier removal a frame held off by a
-    # mismatched tie comes back by degrees: 4 polish iterations left it moving 0.4 m per step)
-    iterations: int = 12
-    polish_iterations: int = 8
-    max_step_deg: float = 2.0
-    max_step_m: float = 1.0
-    # tie observations of points nearer than this along the optical axis (or behind), and of tracks
-    # with fewer inlier observations in the block, are left out; σ of the points' step damping (m)
-    min_depth_m: float = 0.5
-    min_track_observations: int = 2
-    point_step_sigma_m: float = 100.0
-    # a phase has converged when no frame moves by more than this (metres; rotations as the
-    # motion they cause at 10 m)
-    converged_m: float = 5e-4
-
-
-@dataclass(frozen=True, eq=False)
-class BundleResult:
-    """Result of `bundle_adjust`.
-
-    Attributes:
-        poses: `{frame: Pose}` refined.
-        covariance: `{frame: (6, 6)}` of `(ω_cam [rad], dC_world [m])`, variance factor applied.
-        ties: `{frame: inlier tie observations}`.
-        tie_rms_px: `{frame: RMS of its inlier tie residuals}` (NaN without ties).
-        edge_rms_px, edge_support, null_support, matched_edges: per frame that sees model edges,
-            at its refined pose (`edge_observations.edge_support`, null shift
-            `PriorOptions.null_shift_px`):
-            RMS of the inlier edge offsets, support, null support, matched model edges.
-        points: `(T, 3)` adjusted track points (world).
-        inlier: `(M,)` bool per tie observation of the tracks (of the block's frames).
-        sigma0: a-posteriori standard deviation of unit weight of the ties (≥ 1 is applied to
-            `covariance`).
-        converged: False when a normal system was not positive definite (the iterations stopped
-            there; covariances NaN).
-    """
-
-    poses: dict[int, Pose]
-    covariance: dict[int, np.ndarray]
-    ties: dict[int, int]
-    tie_rms_px: dict[int, float]
-    edge_rms_px: dict[int, float]
-    edge_support: dict[int, float]
-    null_support: dict[int, float]
-    matched_edges: dict[int, int]
-    points: np.ndarray
-    inlier: np.ndarray
-    sigma0: float = 1.0
-    converged: bool = True
 
 
 def track_pairs(track: np.ndarray, n_tracks: int) -> tuple[np.ndarray, np.ndarray]:
@@ -219,25 +143,15 @@ def _adjust(
 ) -> BundleResult:
     """`bundle_adjust`."""
     frames = list(frames)
-    slot = {f: k for k, f in enumerate(frames)}
     n = len(frames)
     poses = {f: start[f] for f in frames}
-    m_obs = np.isin(tracks.frame, frames)
-    t_obs = tracks.track[m_obs]
-    f_obs = np.array([slot[f] for f in tracks.frame[m_obs]], dtype=int)
-    uv_obs = tracks.uv[m_obs]
+    slot, t_obs, f_obs, uv_obs = _block_observations(tracks, frames)
     X = tracks.point.copy()
     nrm = tracks.normal
     d_plane = np.asarray(tracks.offset)
     inl = np.ones(len(t_obs), bool)
-    edges: dict[int, FrameEdges] = {}
-    wf = None
-    if options.edges and wireframe is not None:
-        # per frame the part of the scene wireframe it may see (the same visible samples)
-        wf = wireframe if isinstance(wireframe, FrameWireframes) else FrameWireframes(wireframe, camera)
-        margin = options.edge_radius_start_px + fit_options.roi_margin_px
-        edges = frame_edges(camera, wf, raycaster, frames, images, poses, margin, fit_options,
-                            edge_options, feature_options)
+    wf, edges = _block_edges(camera, wireframe, raycaster, frames, images, poses, options, fit_options,
+                             edge_options, feature_options)
     w_tie = options.tie_sigma_px ** -2
     w_plane = options.plane_sigma_m ** -2
     nc = 0 if common_info is None else 1  # the common correction's block
@@ -293,6 +207,33 @@ def _tied(inl: np.ndarray, t_obs: np.ndarray, n_tracks: int, k: int) -> np.ndarr
     of them: a point seen once ties nothing (its elimination only cancels its own observation)."""
     counts = np.bincount(t_obs[inl], minlength=n_tracks)
     return inl & (counts[t_obs] >= k)
+
+
+def _block_observations(
+    tracks: Tracks, frames: Sequence[int]
+) -> tuple[dict[int, int], np.ndarray, np.ndarray, np.ndarray]:
+    """The slot of each frame in the block and the track observations in `frames`: track ids
+    `(K,)`, frame slots `(K,)`, image positions `(K, 2)` px."""
+    slot = {f: k for k, f in enumerate(frames)}
+    m_obs = np.isin(tracks.frame, frames)
+    f_obs = np.array([slot[f] for f in tracks.frame[m_obs]], dtype=int)
+    return slot, tracks.track[m_obs], f_obs, tracks.uv[m_obs]
+
+
+def _block_edges(
+    camera: Camera, wireframe: Wireframe | FrameWireframes | None, raycaster: RayCaster,
+    frames: Sequence[int], images: Mapping[int, np.ndarray], poses: Mapping[int, Pose],
+    options: BundleOptions, fit_options: FrameFitOptions, edge_options: EdgeOptions,
+    feature_options: FeatureOptions,
+) -> tuple[FrameWireframes | None, dict[int, FrameEdges]]:
+    """Per frame the part of the scene wireframe it may see (the same visible samples) and the
+    image edges around it (`frame_edges`); `(None, {})` without edge observations."""
+    if not options.edges or wireframe is None:
+        return None, {}
+    wf = wireframe if isinstance(wireframe, FrameWireframes) else FrameWireframes(wireframe, camera)
+    margin = options.edge_radius_start_px + fit_options.roi_margin_px
+    return wf, frame_edges(camera, wf, raycaster, frames, images, poses, margin, fit_options, edge_options,
+                           feature_options)
 
 
 def _bounded(dx: np.ndarray, options: BundleOptions) -> np.ndarray:

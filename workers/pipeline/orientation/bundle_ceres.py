@@ -49,11 +49,12 @@ from workers.pipeline.orientation.bundle import (
     BundleOptions,
     BundleResult,
     _add_edge_equations,
+    _block_edges,
+    _block_observations,
     _edge_figures,
     _residuals,
     _tie_figures,
 )
-from workers.pipeline.orientation.edge_observations import FrameEdges, FrameWireframes, frame_edges
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.priors import PriorOptions
@@ -166,21 +167,13 @@ def bundle_adjust_ceres(
 ) -> BundleResult:
     """`bundle.bundle_adjust`'s problem solved with Ceres (module docstring; same arguments)."""
     frames = list(frames)
-    slot = {f: k for k, f in enumerate(frames)}
     n = len(frames)
     poses = {f: start[f] for f in frames}
-    m_obs = np.isin(tracks.frame, frames)
-    t_obs, uv_obs = tracks.track[m_obs], tracks.uv[m_obs]
-    f_obs = np.array([slot[f] for f in tracks.frame[m_obs]], dtype=int)
+    slot, t_obs, f_obs, uv_obs = _block_observations(tracks, frames)
     X = tracks.point.copy()
     inl = np.ones(len(t_obs), bool)
-    edges: dict[int, FrameEdges] = {}
-    wf = None
-    if options.edges and wireframe is not None:
-        wf = wireframe if isinstance(wireframe, FrameWireframes) else FrameWireframes(wireframe, camera)
-        margin = options.edge_radius_start_px + fit_options.roi_margin_px
-        edges = frame_edges(camera, wf, raycaster, frames, images, poses, margin, fit_options, edge_options,
-                            feature_options)
+    wf, edges = _block_edges(camera, wireframe, raycaster, frames, images, poses, options, fit_options,
+                             edge_options, feature_options)
     common = np.zeros(6)
     polish, k_phase = False, 0
     for it in range(options.iterations + options.polish_iterations):
