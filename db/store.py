@@ -55,6 +55,16 @@ TEX_IMAGE_COLUMNS = (
     "radiometry_unit",
     "sha256",
 )
+#: the thermal analysis' figures of a surface (`surface_thermal`, migration 0010)
+FACADE_FIGURE_COLUMNS = (
+    "typical_k",
+    "spread_k",
+    "hot_share",
+    "window_share",
+    "heat_loss_index",
+    "windows",
+    "leaks",
+)
 THERMAL_COLUMNS = (
     "appearance_id",
     "surface_id",
@@ -79,13 +89,7 @@ THERMAL_COLUMNS = (
     "best_resolution_m",
     "mean_observations",
     "reason",
-    "typical_k",
-    "spread_k",
-    "hot_share",
-    "window_share",
-    "heat_loss_index",
-    "windows",
-    "leaks",
+    *FACADE_FIGURE_COLUMNS,
 )
 POSE_COLUMNS = (
     "job_id",

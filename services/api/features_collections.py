@@ -22,6 +22,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from db.store import FACADE_FIGURE_COLUMNS
+
 __all__ = ["COLLECTIONS", "Collection", "Filter"]
 
 
@@ -86,16 +88,6 @@ def _attr_number(key: str, pattern: str = r"^\s*[-+]?[0-9]+(\.[0-9]*)?([eE][-+]?
 
 
 _YEAR = f"(substring({_attr_text('yearOfConstruction')} from '^\\s*([0-9]{{4}})'))::int"
-#: the anomaly detector's figures per surface (migration 0010)
-_FACADE_FIGURES = (
-    "typical_k",
-    "spread_k",
-    "hot_share",
-    "window_share",
-    "heat_loss_index",
-    "windows",
-    "leaks",
-)
 _COMPLETE = "cm.state = 'complete'"
 _MODEL = Filter("model", "cm.name = :model", description="City model name.")
 
@@ -214,7 +206,7 @@ JOIN city_model cm ON cm.id = s.city_model_id AND {_COMPLETE}""",
         ("p95_k", "st.p95_k"),
         ("area_m2", "s.area_m2"),
     ),
-    optional=tuple((name, f"st.{name}", "surface_thermal", name) for name in _FACADE_FIGURES),
+    optional=tuple((name, f"st.{name}", "surface_thermal", name) for name in FACADE_FIGURE_COLUMNS),
     filters=(
         Filter("theme", "a.theme = :theme", description="Appearance theme."),
         Filter("job", "a.job_id = :job", kind="uuid", description="Job id."),
