@@ -27,8 +27,9 @@ from sqlalchemy import delete, func, select, text, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from db.api_scopes import API_SCOPES
 from db.errors import CityDBError, ModelExistsError, NotFoundError
-from db.models import API_SCOPES, ApiKey, ModelImport, SequenceUpload
+from db.service_models import ApiKey, ModelImport, SequenceUpload
 from db.settings import Settings
 
 __all__ = [

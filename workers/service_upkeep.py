@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session
 from db import jobs
 from db.errors import InputDataError, ModelExistsError
 from db.importer import import_citygml
-from db.models import ModelImport
+from db.service_models import ModelImport
 from db.service_records import get_model_import, imports_to_requeue, remove_abandoned_uploads
 from workers.celery_app import stale_after_s
 from workers.service_job import (

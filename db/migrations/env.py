@@ -5,6 +5,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import engine_from_config, pool
 
+import db.service_models  # noqa: F401  (registers the service tables on Base.metadata)
 from db.models import Base
 
 config = context.config

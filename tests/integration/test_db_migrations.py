@@ -11,6 +11,7 @@ from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from geoalchemy2 import Geometry
 
+import db.service_models  # noqa: F401  (registers the service tables on Base.metadata)
 from db.migrations import current_revision, downgrade, head_revision, upgrade
 from db.models import Base
 from db.session import make_engine
