@@ -303,11 +303,13 @@ def orient(
     try:
         caster = caster if caster is not None else scene_caster(ingested)
         prior = dict(zip(frames, calibrated.priors, strict=True))
-        so = orient_sequence(
-            ingested.manifest.camera, caster, frames, ingested.frames, prior, times, calibrated.accuracy,
-            progress=lambda done, total: progress("orient", done, total),
-            map_windows=map_windows or pool_map(options.workers),
-        ) if options.orientation != "sfm" else None
+        so = None  # `sfm`: the reconstruction alone
+        if options.orientation != "sfm":
+            so = orient_sequence(
+                ingested.manifest.camera, caster, frames, ingested.frames, prior, times, calibrated.accuracy,
+                progress=lambda done, total: progress("orient", done, total),
+                map_windows=map_windows or pool_map(options.workers),
+            )
         so, method = with_reconstruction(  # `RunOptions.orientation`: edges, sfm or both
             options.orientation, so, ingested.manifest.camera, caster, frames, ingested.frames, prior, times,
             calibrated.accuracy,
