@@ -1,12 +1,14 @@
 """`citytherm synth`: render a synthetic TIR sequence package with ground truth.
 
     citytherm synth --model M.gml --platform drive --buildings 5 --frames 100 --seed 1 \\
-        --truth TRUTH.json -o PACKAGE/ [--rgb]
+        --truth TRUTH.json -o PACKAGE/ [--rgb] [--occluders]
 
 Without `--model` the bundled Berlin LoD2 model is used (`--procedural N` builds a block of N
 gable-roofed houses instead). `--rgb` adds a visible-band camera on the same mount (frames
-`rgb/NNNNNN.png`, the manifest's `rgb_camera` section). The truth file (true poses, mounting,
-delay, anomalies; see `docs/synth-truth.md`) is written next to the package, never inside it.
+`rgb/NNNNNN.png`, the manifest's `rgb_camera` section). `--occluders` renders street trees and
+parked cars that the model lacks (`synth.occluders`; listed in the truth). The truth file (true
+poses, mounting, delay, anomalies; see `docs/synth-truth.md`) is written next to the package,
+never inside it.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from workers.pipeline.synth import (
     DriveOptions,
     ErrorOptions,
     FlightOptions,
+    OccluderOptions,
     RgbOptions,
     SensorOptions,
     SynthError,
@@ -119,6 +122,9 @@ def synth(
     ),
     rgb_width: int = typer.Option(1280, "--rgb-width", help="RGB image width, px."),
     rgb_height: int = typer.Option(1024, "--rgb-height", help="RGB image height, px."),
+    occluders: bool = typer.Option(
+        False, "--occluders", help="Render street trees and parked cars the model lacks (occluders)."
+    ),
 ) -> None:
     """Render a synthetic TIR sequence package of a city model, with a ground-truth file."""
     console = Console()
@@ -179,6 +185,7 @@ def synth(
             ),
             n_gcps=gcps,
             rgb=RgbOptions(width=rgb_width, height=rgb_height) if rgb else None,
+            occluders=OccluderOptions() if occluders else None,
             model_path=str(Path(model_path).resolve()) if model_path else None,
             procedural=proc,
         )

@@ -23,6 +23,8 @@ Public API (everything below is importable from `workers.pipeline.synth`):
 - `Renderer(mesh, thermal, camera, ground_z, SensorOptions(), seed)`: `radiance(pose)` (ideal K),
   `frame(pose, index)` (sensor effects), `frame_dn`, `labels(pose)` (polygon index per pixel).
 - `procedural_block(n_buildings, seed) -> list[Building]`; `default_camera()`.
+- `SynthOptions(occluders=OccluderOptions())`: street trees and parked cars the model lacks,
+  rendered (label `OCCLUDER`) and listed in `truth.occluders` (`place_occluders`, `Occluders`).
 - Options: `SynthOptions`, `DriveOptions`, `FlightOptions`, `ErrorOptions`, `ThermalOptions`,
   `SensorOptions`, `RgbOptions` (`SynthOptions(rgb=RgbOptions())`: a second, visible-band camera;
   `result.rgb` is a `SynthRgb`: lazy `(H, W, 3)` uint8 `frames`, `true_poses`, `recorded_poses`,
@@ -38,8 +40,17 @@ Typical test use::
 from workers.pipeline.synth.anomaly import Anomaly
 from workers.pipeline.synth.common import BUNDLED_MODEL, SynthError
 from workers.pipeline.synth.errors import ErrorOptions, InsSimulation, simulate_ins
+from workers.pipeline.synth.occluders import OccluderOptions, Occluders, place_occluders
 from workers.pipeline.synth.procedural import gable_house, procedural_block
-from workers.pipeline.synth.render import GROUND, RADIOMETRY, SKY, Renderer, SensorOptions, default_camera
+from workers.pipeline.synth.render import (
+    GROUND,
+    OCCLUDER,
+    RADIOMETRY,
+    SKY,
+    Renderer,
+    SensorOptions,
+    default_camera,
+)
 from workers.pipeline.synth.scene import SynthFrames, SynthOptions, SynthResult, synthesize
 from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
 from workers.pipeline.synth.trajectory import DriveOptions, FlightOptions, PathTrajectory
@@ -49,6 +60,7 @@ from workers.pipeline.synth.visible import RgbOptions, RgbRenderer, SynthRgb
 __all__ = [
     "BUNDLED_MODEL",
     "GROUND",
+    "OCCLUDER",
     "RADIOMETRY",
     "SKY",
     "Anomaly",
@@ -56,6 +68,8 @@ __all__ = [
     "ErrorOptions",
     "FlightOptions",
     "InsSimulation",
+    "OccluderOptions",
+    "Occluders",
     "PathTrajectory",
     "Renderer",
     "RgbOptions",
@@ -71,6 +85,7 @@ __all__ = [
     "ThermalScene",
     "default_camera",
     "gable_house",
+    "place_occluders",
     "procedural_block",
     "simulate_ins",
     "synthesize",

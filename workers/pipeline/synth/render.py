@@ -16,7 +16,9 @@ sub-pixel rays are cast only for pixels whose 4-neighbour differs by more than
 `adaptive_threshold_k` or sees another surface: inside a smooth patch the mean over the pixel
 equals the centre value to second order, and the edges (10–20 % of a drive's pixels, most of
 a flight's) cost the extra rays. The ground is an analytic plane `z = ground_z` (not in the
-mesh); a ray that hits neither the model nor the ground sees the sky.
+mesh); a ray that hits neither the model nor the ground sees the sky. Optional `Occluders`
+(`synth.occluders`: trees, cars the model lacks) are a second triangle mesh with a temperature
+per triangle; a ray that meets one before the model and the ground sees it (label `OCCLUDER`).
 """
 
 from __future__ import annotations
@@ -33,10 +35,11 @@ from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import SceneMesh, open3d_scene
 from workers.pipeline.synth.common import SynthError, rng_for
+from workers.pipeline.synth.occluders import Occluders
 from workers.pipeline.synth.thermal import ThermalScene
 
 #: Pixel labels of `Renderer.labels` for what a ray saw besides a polygon index.
-SKY, GROUND = -1, -2
+SKY, GROUND, OCCLUDER = -1, -2, -3
 
 RADIOMETRY = Radiometry(unit="K", scale=0.01, offset=0.0)
 
@@ -107,6 +110,7 @@ class Renderer:
         ground_z: ground plane height, world metres.
         sensor: sensor effects.
         seed: seed of the fixed-pattern and temporal noise.
+        occluders: trees, cars the model lacks (None: none).
     """
 
     def __init__(
@@ -117,6 +121,7 @@ class Renderer:
         ground_z: float,
         sensor: SensorOptions | None = None,
         seed: int = 0,
+        occluders: Occluders | None = None,
     ) -> None:
         if tuple(thermal.polygon_ids) != tuple(mesh.polygon_ids):
             raise SynthError("thermal scene and mesh disagree on the polygon order")
@@ -126,6 +131,7 @@ class Renderer:
         if self.sensor.supersample < 1:
             raise SynthError(f"supersample must be >= 1, got {self.sensor.supersample}")
         self.seed = int(seed)
+        self.occluders = occluders if occluders is not None and len(occluders.triangles) else None
         self._scene: tuple | None = None
         # polygon label per triangle, plus SKY for Open3D's invalid id (clipped to the last entry)
         self._tri_label = np.append(mesh.triangle_polygon.astype(np.int32), np.int32(SKY))
@@ -154,7 +160,15 @@ class Renderer:
             import open3d as o3d  # heavy: only processes that render import it
 
             scene = open3d_scene(self.mesh)
-            self._scene = (o3d, scene)
+            occ = None
+            if self.occluders is not None:
+                occ = o3d.t.geometry.RaycastingScene()
+                local = (self.occluders.vertices - self.mesh.origin).astype(np.float32)
+                occ.add_triangles(
+                    o3d.core.Tensor.from_numpy(local),
+                    o3d.core.Tensor.from_numpy(np.ascontiguousarray(self.occluders.triangles, np.uint32)),
+                )
+            self._scene = (o3d, scene, occ)
         return self._scene
 
     def _bearings(self) -> tuple[np.ndarray, np.ndarray]:
@@ -199,24 +213,33 @@ class Renderer:
         n = len(b)
         d = cv2.transform(b.reshape(n, 1, 3), R.astype(f32)).reshape(n, 3)  # world directions
         label = np.full(n, SKY, np.int32)
-        o3d, scene = self._raycasting_scene()
+        o3d, scene, occ = self._raycasting_scene()
+        rays = np.empty((n, 6), f32)
+        rays[:, :3] = (C - self.mesh.origin).astype(f32)
+        rays[:, 3:] = d
         if len(self.mesh.triangles):
-            rays = np.empty((n, 6), f32)
-            rays[:, :3] = (C - self.mesh.origin).astype(f32)
-            rays[:, 3:] = d
             ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
             t = ans["t_hit"].numpy()
             prim = ans["primitive_ids"].numpy()
             label = self._tri_label[np.minimum(prim, len(self._tri_label) - 1)]
         else:
             t = np.full(n, np.inf, f32)
+        T = np.empty(n, f32)
+        if occ is not None:
+            ans = occ.cast_rays(o3d.core.Tensor.from_numpy(rays))
+            t_occ = ans["t_hit"].numpy()
+            hit = np.flatnonzero(t_occ < t)
+            if len(hit):
+                t = t.copy()
+                t[hit] = t_occ[hit]
+                label[hit] = OCCLUDER
+                T[hit] = self.occluders.temperature[ans["primitive_ids"].numpy()[hit]]
         dx, dy, dz = (np.ascontiguousarray(c) for c in d.T)
         with np.errstate(divide="ignore", invalid="ignore"):
             tg = f32(self.ground_z - C[2]) / dz
         ground = (dz < 0) & (tg > 0) & (tg < t)
         t = np.where(ground, tg, t)
         label[ground] = GROUND
-        T = np.empty(n, f32)
         cx, cy, cz = (C - self.thermal.origin).astype(f32)
         on = np.flatnonzero(label >= 0)
         if len(on):

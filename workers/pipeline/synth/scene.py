@@ -24,6 +24,7 @@ from workers.pipeline.geometry.manifest import FrameRecord, GroundControl, Seque
 from workers.pipeline.geometry.raycast import SceneMesh, build_scene_mesh
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.errors import ErrorOptions, InsSimulation, simulate_ins
+from workers.pipeline.synth.occluders import OccluderOptions, Occluders, place_occluders
 from workers.pipeline.synth.render import RADIOMETRY, Renderer, SensorOptions, default_camera
 from workers.pipeline.synth.shapes import footprint
 from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
@@ -74,6 +75,7 @@ class SynthOptions:
     procedural: tuple[int, int] | None = None  # (n_buildings, seed) recorded when procedural
     frame_ext: str = "png"  # "png" (16-bit) or "tif"
     rgb: RgbOptions | None = None  # a second, visible-band camera on the mount (`rgb_camera`)
+    occluders: OccluderOptions | None = None  # trees and cars the model lacks (`synth.occluders`)
 
 
 class SynthFrames:
@@ -228,6 +230,22 @@ def _trajectory(
     return traj, M, _scene_buildings(blds, loop, radius, set(cluster)), cluster
 
 
+def _occluders(
+    traj: PathTrajectory | LineTrajectory, scene: Sequence[Building], ground_z: float, o: SynthOptions
+) -> Occluders | None:
+    """Trees and cars the model lacks (`o.occluders`; None when not asked for): along a drive's
+    loop or a walk's line, scattered around a flight's loop."""
+    if o.occluders is None:
+        return None
+    if isinstance(traj, PathTrajectory):
+        path = np.vstack([traj.loop[:, :2], traj.loop[:1, :2]])  # closed
+    else:
+        length = traj.speed * o.frame_interval_s * max(o.n_frames - 1, 1)
+        path = np.stack([traj.start[:2], traj.start[:2] + length * traj.direction[:2]])
+    fps = [footprint(b) for b in scene]
+    return place_occluders(path, fps, ground_z, o.occluders, o.seed, drive=o.platform != "flight")
+
+
 def synthesize(buildings: Sequence[Building], options: SynthOptions | None = None) -> SynthResult:
     """Build a synthetic sequence of `buildings` (model CRS, metres).
 
@@ -258,7 +276,8 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
     mesh = build_scene_mesh(scene)
     thermal = ThermalScene(scene, mesh.polygon_ids, seed=o.seed, options=o.thermal)
     camera = o.camera or default_camera()
-    renderer = Renderer(mesh, thermal, camera, ground_z, o.sensor, seed=o.seed)
+    occluders = _occluders(traj, scene, float(ground_z), o)
+    renderer = Renderer(mesh, thermal, camera, ground_z, o.sensor, seed=o.seed, occluders=occluders)
 
     times = o.t0 + o.frame_interval_s * np.arange(o.n_frames)
     errors = o.errors
@@ -318,6 +337,7 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
         attitude_error=ins.attitude_error,
         anomalies=thermal.anomalies,
         windows=thermal.windows,
+        occluders=() if occluders is None else occluders.items,
         thermal=o.thermal,
         sensor=o.sensor,
         errors=asdict(errors),

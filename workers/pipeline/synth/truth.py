@@ -71,6 +71,8 @@ class SynthTruth:
         package: package folder the truth belongs to (relative to the truth file or absolute).
         windows: the window rectangles of every wall of the scene (`ThermalScene.windows`;
             empty in truth files written before windows were recorded).
+        occluders: the trees and cars rendered that the model lacks (`synth.occluders`: kind,
+            centre, size); empty without `SynthOptions.occluders`.
     """
 
     seed: int
@@ -95,6 +97,7 @@ class SynthTruth:
     errors: dict[str, Any]
     package: str | None = None
     windows: tuple[Window, ...] = ()
+    occluders: tuple[dict, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object of the truth file."""
@@ -126,6 +129,7 @@ class SynthTruth:
             ],
             "anomalies": [a.to_dict() for a in self.anomalies],
             "windows": [w.to_dict() for w in self.windows],
+            "occluders": [dict(o) for o in self.occluders],
             "thermal": asdict(self.thermal),
             "sensor": asdict(self.sensor),
             "errors": dict(self.errors),
@@ -161,6 +165,7 @@ class SynthTruth:
                 errors=dict(d.get("errors") or {}),
                 package=d.get("package"),
                 windows=tuple(Window.from_dict(w) for w in d.get("windows") or []),
+                occluders=tuple(dict(o) for o in d.get("occluders") or []),
             )
         except (KeyError, TypeError, ValueError, OptionsError) as exc:
             raise SynthError(f"truth: missing or bad field ({exc})") from exc
