@@ -5,7 +5,8 @@ In: a CityGML file path. Out: a `SplitPlan` (or None when the file is not cut) a
 `Spliced` bytes a reader parses instead of the file:
 
 - first half: the file from its start up to the `cityObjectMember` start tag found at or after
-  the middle of the file (`split`), then the end tag of the root element;
+  the cut (`split`; the middle of the file, or the fraction `at` of its size), then the end tag
+  of the root element ("half" is used for either part whatever their sizes);
 - second half: the file's header (from its start up to its first `cityObjectMember`: prolog,
   `CityModel` start tag with its namespace declarations, name, envelope, model-level
   appearances), as many newlines as the skipped part has (so that the lines of every error
@@ -62,10 +63,13 @@ class SplitPlan:
     root_qname: str
 
 
-def plan_split(path: Path, min_bytes: int) -> SplitPlan | None:
-    """Where to cut the file `path` in two (module docstring); None when it is smaller than
-    `min_bytes`, not in an ASCII-compatible encoding, its root is not a `CityModel` starting in its
-    first MB, its header does not end there, or no `cityObjectMember` starts in its second half."""
+def plan_split(path: Path, min_bytes: int, at: float = 0.5) -> SplitPlan | None:
+    """Where to cut the file `path` in two (module docstring): at the first `cityObjectMember`
+    from byte `at * size` on (`0 < at < 1`). None when the file is smaller than `min_bytes`, not
+    in an ASCII-compatible encoding, its root is not a `CityModel` starting in its first MB, its
+    header does not end there, or no `cityObjectMember` starts after that byte."""
+    if not 0.0 < at < 1.0:
+        raise ValueError(f"plan_split: the cut must lie inside the file (0 < at < 1), not {at}")
     size = path.stat().st_size
     if size < max(min_bytes, 1):
         return None
@@ -78,7 +82,7 @@ def plan_split(path: Path, min_bytes: int) -> SplitPlan | None:
         if root is None or first is None or b"<!--" in head[: root.start()]:
             return None
         tag = first.group(0)[:-1]  # b"<core:cityObjectMember"
-        pos = mm.find(tag, max(size // 2, first.end()))
+        pos = mm.find(tag, max(int(size * at), first.end()))
         while pos >= 0 and mm[pos + len(tag) : pos + len(tag) + 1] not in (b" ", b">", b"\t", b"\n", b"\r"):
             pos = mm.find(tag, pos + 1)
         root_qname = root.group(0)[1:-1]

@@ -42,19 +42,22 @@ import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from functools import partial
+from os import PathLike
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any, BinaryIO
+from typing import IO, TYPE_CHECKING, Any, BinaryIO
 
-from db.citygml import reader as citygml_reader
-from db.citygml.names import CityGMLError
+from db.import_options import ImportOptions
 from db.import_split import Spliced, SplitPlan, first_half, part_is_plain, plan_split, second_half
-from workers.pipeline.geometry.citymodel import Building
 
-__all__ = ["BatchStream"]
+if TYPE_CHECKING:  # this module imports nothing heavy: `prestart` runs before the database layer loads
+    from workers.pipeline.geometry.citymodel import Building
+
+__all__ = ["BatchStream", "prestart"]
 
 _LEN = struct.Struct("<Q")
-#: the reader process's program: settings (a pickle) on standard input, frames on standard output.
+#: the reader process's program: settings (a pickle) on standard input, then the transform (a
+#: pickle, read when the first batch is parsed); frames on standard output.
 _CHILD = (
     "import pickle, sys; cfg = pickle.load(sys.stdin.buffer); sys.path[:0] = cfg['sys_path']; "
     "from db.import_stream import _child_main; _child_main(cfg)"
@@ -82,6 +85,8 @@ class _Part:
 def _events(path: Path, huge_tree: bool, part: _Part | None = None) -> Iterator[tuple[str, Any]]:
     """("building", Building) in document order, and ("appearance", Appearance) for CityModel-level
     appearances after the buildings."""
+    from db.citygml import reader as citygml_reader
+
     part = part or _Part()
     source = None if part.pieces is None else partial(Spliced, path, part.pieces)
     seen = 0
@@ -166,6 +171,20 @@ def _child_part(path: Path, cfg: dict[str, Any]) -> _Part | None:
     return _Part(pieces=pieces, strict_ids=half == 2)
 
 
+class _LateTransform:
+    """The importer's transform, read from standard input when the first batch is ready (the
+    importer sends it once it knows the database SRID: parsing starts before)."""
+
+    def __init__(self, src: BinaryIO) -> None:
+        self._src = src
+        self._fn: Callable[[list[Building]], Any] | None = None
+
+    def __call__(self, buildings: list[Building]) -> Any:
+        if self._fn is None:
+            self._fn = pickle.load(self._src)
+        return self._fn(buildings)
+
+
 def _child_main(cfg: dict[str, Any]) -> None:
     """Reader process: every batch, then ("done", (peak RSS, top-level buildings sent, CPU s)) or
     ("error", (kind, message, is_citygml)); a split file's half that is not independent:
@@ -177,8 +196,10 @@ def _child_main(cfg: dict[str, Any]) -> None:
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     path = Path(cfg["path"])
+    from db.citygml.names import CityGMLError
+
     try:
-        transform = pickle.loads(cfg["transform"])
+        transform = _LateTransform(sys.stdin.buffer)
         part = _child_part(path, cfg)
         if part is None:
             if cfg["half"] == 2:
@@ -218,17 +239,20 @@ class BatchStream:
         path: Path,
         *,
         batch_size: int,
-        transform: Callable[[list[Building]], Any] = list,
+        transform: Callable[[list[Building]], Any] | None = list,
         huge_tree: bool = False,
         parallel: bool = True,
         split_above_bytes: int | None = None,
+        split_at: float = 0.5,
     ) -> None:
         self.path = path
         self.batch_size = batch_size
+        #: None until `start(transform)`: the readers parse their first batch meanwhile
         self.transform = transform
         self.huge_tree = huge_tree
         self.parallel = parallel and bool(sys.executable)  # an embedded interpreter cannot start one
         self.split_above_bytes = split_above_bytes
+        self.split_at = split_at
         self.peak_rss_mb: float | None = None
         #: CPU seconds of each reader process that ended normally, start-up included
         self.reader_cpu_s: list[float] = []
@@ -237,6 +261,8 @@ class BatchStream:
         self._procs: list[subprocess.Popen[bytes]] = []
         self._spill: IO[bytes] | None = None
         self._plan: SplitPlan | None = None
+        #: readers started before the transform was known: they wait for it on standard input
+        self._waiting: list[subprocess.Popen[bytes]] = []
 
     @property
     def reader_pid(self) -> int | None:
@@ -255,7 +281,6 @@ class BatchStream:
             "path": str(self.path),
             "huge_tree": self.huge_tree,
             "batch_size": self.batch_size,
-            "transform": pickle.dumps(self.transform),
             **part,
         }
         proc = subprocess.Popen(
@@ -265,17 +290,33 @@ class BatchStream:
         assert proc.stdin is not None
         try:
             proc.stdin.write(pickle.dumps(cfg))
-            proc.stdin.close()
+            proc.stdin.flush()
         except BrokenPipeError:  # it died at once: reported by the first read
             pass
+        self._waiting.append(proc)
+        self._send_transform()
         return proc
 
-    def start(self) -> BatchStream:
-        """Start the reader process(es) now (they then parse while the caller prepares the database)."""
+    def _send_transform(self) -> None:
+        """Send the transform to the readers waiting for it (once it is known)."""
+        if self.transform is None:
+            return
+        data = pickle.dumps(self.transform)
+        waiting, self._waiting = self._waiting, []
+        for proc in waiting:
+            assert proc.stdin is not None
+            with contextlib.suppress(BrokenPipeError):  # it died: reported by the first read
+                proc.stdin.write(data)
+                proc.stdin.close()
+
+    def spawn(self) -> BatchStream:
+        """Start the reader process(es) now, before the transform is known (`start` sends it):
+        they load their modules and parse while the caller loads its own and prepares the
+        database."""
         if not self.parallel or self._procs:
             return self
         if self.split_above_bytes is not None:
-            self._plan = plan_split(self.path, self.split_above_bytes)
+            self._plan = plan_split(self.path, self.split_above_bytes, at=self.split_at)
         if self._plan is None:
             self.mode = "one"
             self._spawn(subprocess.PIPE)
@@ -287,8 +328,19 @@ class BatchStream:
         self._spawn(self._spill, half=2, plan=plan)
         return self
 
+    def start(self, transform: Callable[[list[Building]], Any] | None = None) -> BatchStream:
+        """Start the reader process(es) if `spawn` has not, with `transform` (when given: else
+        the one of the constructor); they then parse while the caller prepares the database."""
+        if transform is not None:
+            self.transform = transform
+        if self.transform is None:
+            raise ValueError("BatchStream.start: no transform given")
+        self.spawn()
+        self._send_transform()
+        return self
+
     def __enter__(self) -> BatchStream:
-        return self.start()
+        return self.start() if self.transform is not None else self.spawn()
 
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
@@ -299,10 +351,14 @@ class BatchStream:
         """Stop the reader processes (those still running) and release their pipes and files."""
         procs, self._procs = self._procs, []
         spill, self._spill = self._spill, None
+        self._waiting = []
         try:
             for proc in procs:
                 if proc.poll() is None:
                     proc.kill()  # it holds nothing worth a graceful end: a file it reads, a pipe
+                if proc.stdin is not None and not proc.stdin.closed:
+                    with contextlib.suppress(OSError):
+                        proc.stdin.close()
             for proc in procs:
                 try:
                     proc.wait(timeout=10)
@@ -315,6 +371,8 @@ class BatchStream:
 
     def _frames(self, f: BinaryIO, proc: subprocess.Popen[bytes]) -> Iterator[tuple[str, Any]]:
         """The frames of one reader up to its end; returns ("done", (rss, count)) or ("unsplit", None)."""
+        from db.citygml.names import CityGMLError
+
         while True:
             head = _read_exactly(f, _LEN.size)
             body = None if head is None else _read_exactly(f, _LEN.unpack(head)[0])
@@ -337,6 +395,8 @@ class BatchStream:
 
     def _split_batches(self) -> Iterator[tuple[str, Any]]:
         """The batches of a split file, in the file's order (module docstring)."""
+        from db.citygml.names import CityGMLError
+
         first, second = self._procs
         assert first.stdout is not None and self._spill is not None
         kind, info = yield from self._frames(first.stdout, first)
@@ -362,6 +422,8 @@ class BatchStream:
     def __iter__(self) -> Iterator[tuple[str, Any]]:
         if not self.parallel:
             self.mode = "one"
+            if self.transform is None:
+                raise ValueError("BatchStream: no transform given")
             yield from _batches(self.path, self.huge_tree, self.batch_size, self.transform)
             return
         self.start()
@@ -374,3 +436,27 @@ class BatchStream:
                 yield from self._frames(proc.stdout, proc)
         finally:
             self.close()
+
+
+def prestart(path: str | PathLike[str], options: ImportOptions | None = None) -> BatchStream | None:
+    """The reader processes of an import of `path` with `options`, started now, before the
+    transform is known (None when the file is read in the importing process, or cannot be
+    opened: the import reports that). A command line calls this before it loads the database
+    layer, so that the readers load their modules and parse meanwhile; hand the stream to
+    `db.importer.import_citygml(readers=...)`, which sends the transform, or close it."""
+    opts = options or ImportOptions()
+    p = Path(path)
+    try:
+        if not opts.reads_in_parallel(p):
+            return None
+    except OSError:
+        return None
+    return BatchStream(
+        p,
+        batch_size=opts.batch_size,
+        transform=None,
+        huge_tree=opts.huge_tree,
+        parallel=True,
+        split_above_bytes=opts.split_above_bytes,
+        split_at=opts.split_at,
+    ).spawn()

@@ -54,6 +54,7 @@ from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
 from db.errors import InputDataError, ModelExistsError
 from db.geomcodec import encode_envelope
+from db.import_options import ImportOptions
 from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
 from db.import_signals import ImportInterrupted, Interrupts, abandon
 from db.import_stream import BatchStream
@@ -79,40 +80,6 @@ log = logging.getLogger(__name__)
 
 BUILDING_COLUMNS = ("id", "city_model_id", "parent_id", "root_id", "ordinal", *BUILDING_TAIL)
 SURFACE_COLUMNS = ("id", "city_model_id", "building_id", *SURFACE_TAIL)
-
-
-@dataclass(frozen=True)
-class ImportOptions:
-    """Options of `import_citygml`.
-
-    Attributes:
-        batch_size: top-level buildings per COPY batch (all batches share one transaction).
-        checks: geometry checks stored per surface: "fast" (vectorised over the batch: vertex
-            count, planarity, area, unclosed rings), "full" (`db.citygml.checks.check_building`,
-            adding self-intersection and outward wall normals; about 20 ms per building) or "none".
-        huge_tree: passed to the reader (lift libxml2 limits for unusual files).
-        parallel_read: parse the file in a separate reader process while this one writes (None:
-            for files larger than `parallel_above_bytes`).
-        split_above_bytes: a file read in parallel that is at least this large is parsed by two
-            reader processes, one per half (`db.import_stream`; the same rows in the same order);
-            None: always one reader process.
-        import_images: store the image files of the file's textures that lie in its folder.
-        crs: the CRS of the file's coordinates (e.g. `EPSG:25832`) when the file names none, or
-            to override what it names. The geometries are stored in the database SRID.
-        own_links_unchecked: skip the foreign-key checks of the copied rows (each links to a row
-            of this import, by ids it reserved; `session_replication_role = replica` until the
-            final step) where the role may and the schema has no trigger of its own.
-    """
-
-    batch_size: int = 250
-    checks: str = "fast"
-    huge_tree: bool = False
-    parallel_read: bool | None = None
-    parallel_above_bytes: int = 16 * 1024**2
-    split_above_bytes: int | None = 32 * 1024**2
-    import_images: bool = True
-    crs: str | None = None
-    own_links_unchecked: bool = True
 
 
 @dataclass(frozen=True)
@@ -349,12 +316,16 @@ def import_citygml(
     replace: bool = False,
     options: ImportOptions | None = None,
     progress: Callable[[ImportProgress], None] | None = None,
+    readers: BatchStream | None = None,
 ) -> ImportSummary:
     """Import the CityGML file `path` as city model `name` (default: the file's stem), all or
     nothing (module docstring).
 
     `db` is an Engine, a sessionmaker bound to one, or a URL. `progress` is called after every
-    batch and at the final step. Raises `ModelExistsError` when the name exists and `replace` is
+    batch and at the final step. `readers`: the reader processes of this file started earlier
+    with the same options (`db.import_stream.prestart`, by a command line before it loads the
+    database layer); the import owns them from the call on (closes them whatever happens).
+    Raises `ModelExistsError` when the name exists and `replace` is
     false (or another session is importing that name), `CityGMLError` (from the reader) for a bad
     file, `InputDataError` for a file that cannot be one model (e.g. duplicate building ids),
     `ImportInterrupted` when SIGINT, SIGTERM or SIGHUP stopped it.
@@ -362,14 +333,47 @@ def import_citygml(
     opts = options or ImportOptions()
     path = Path(path)
     name = name or path.stem
-    if opts.checks not in ("fast", "full", "none"):
-        raise ValueError(f"ImportOptions.checks must be 'fast', 'full' or 'none', not {opts.checks!r}")
-    engine = as_engine(db)
     try:
-        return _import(engine, path, name, replace, opts, progress)
+        if opts.checks not in ("fast", "full", "none"):
+            raise ValueError(f"ImportOptions.checks must be 'fast', 'full' or 'none', not {opts.checks!r}")
+        if readers is not None and not _readers_fit(readers, path, opts):
+            readers.close()
+            readers = None
+        stream = readers or BatchStream(
+            path,
+            batch_size=opts.batch_size,
+            transform=None,
+            split_above_bytes=opts.split_above_bytes,
+            split_at=opts.split_at,
+            huge_tree=opts.huge_tree,
+            parallel=opts.reads_in_parallel(path) if path.is_file() else False,
+        )
+        # the readers load their modules and parse while the header is read and the database asked
+        stream.spawn()
+    except BaseException:
+        if readers is not None:
+            readers.close()
+        raise
+    engine = None
+    try:
+        engine = as_engine(db)
+        return _import(engine, path, name, replace, opts, progress, stream)
     finally:
-        if isinstance(db, str | Settings):  # an engine of our own: close its connections
+        stream.close()
+        if engine is not None and isinstance(db, str | Settings):  # an engine of our own: close it
             engine.dispose()
+
+
+def _readers_fit(readers: BatchStream, path: Path, opts: ImportOptions) -> bool:
+    """True when `readers` (started earlier) read `path` as `opts` would have them."""
+    return (
+        readers.path.resolve() == path.resolve()
+        and readers.batch_size == opts.batch_size
+        and readers.huge_tree == opts.huge_tree
+        and readers.split_above_bytes == opts.split_above_bytes
+        and readers.split_at == opts.split_at
+        and readers.transform is None
+    )
 
 
 def _import(
@@ -379,6 +383,7 @@ def _import(
     replace: bool,
     opts: ImportOptions,
     progress: Callable[[ImportProgress], None] | None,
+    stream: BatchStream,
 ) -> ImportSummary:
     t0 = time.perf_counter()
     header = citygml_reader.read_header(path, huge_tree=opts.huge_tree)
@@ -388,11 +393,6 @@ def _import(
         db_srid = database_srid(conn)
     to_db = to_database(srs_name, db_srid)
     image_dir = path.resolve().parent if opts.import_images else None
-    parallel = (
-        opts.parallel_read
-        if opts.parallel_read is not None
-        else path.stat().st_size > opts.parallel_above_bytes
-    )
     counts = {"buildings": 0, "parts": 0, "surfaces": 0, "appearances": len(header.appearances)}
     late: list[Appearance] = []
     ordinal = 0
@@ -406,20 +406,12 @@ def _import(
                 )
             )
 
-    stream = BatchStream(
-        path,
-        batch_size=opts.batch_size,
-        # an identity transform is left out: the reader process then never loads PROJ
-        transform=partial(
-            batch_lines, srid=db_srid, checks=opts.checks, to_db=None if to_db.identity else to_db
-        ),
-        split_above_bytes=opts.split_above_bytes,
-        huge_tree=opts.huge_tree,
-        parallel=parallel,
-    )
+    # an identity transform is left out: the reader process then never loads PROJ
+    to_db_or_none = None if to_db.identity else to_db
+    transform = partial(batch_lines, srid=db_srid, checks=opts.checks, to_db=to_db_or_none)
     with Interrupts() as interrupts, stream, engine.connect() as conn:
         try:
-            stream.start()  # the reader parses while the database is prepared
+            stream.start(transform)  # the readers parse while the database is prepared
             interrupts.conn = conn.connection.driver_connection
             dead = [d for d in remove_dead_imports(engine) if d.status == "removed"]
             for d in dead:
