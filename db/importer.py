@@ -139,8 +139,9 @@ def _vertical(srs_name: str | None) -> int | None:
 
 def _write_lines(
     conn: Connection, lines: BatchLines, model_id: int, ordinal0: int, image_dir: Path | None = None
-) -> None:
-    """Reserve ids, link parents/roots/owners and COPY one batch; then its appearances."""
+) -> list[int]:
+    """Reserve ids, link parents/roots/owners and COPY one batch; then its appearances. Returns
+    the building row ids."""
     bids = reserve_ids(conn, "building", len(lines.building_tails))
     sids = reserve_ids(conn, "surface", len(lines.surface_tails))
     m = str(model_id)
@@ -167,6 +168,16 @@ def _write_lines(
         app_ids = rows.write(conn, copy_rows, reserve_ids)
         if image_dir is not None:
             store_appearance_images(conn, app_ids, image_dir)
+    return bids
+
+
+def _renumber(conn: Connection, building_ids: list[int], delta: int) -> None:
+    """Shift the ordinals of the buildings `building_ids` by `delta` (the second part of a split
+    file when the first part's building count estimated from its bytes was wrong)."""
+    conn.execute(
+        text("UPDATE building SET ordinal = ordinal + :d WHERE id = ANY(:ids)"),
+        {"d": delta, "ids": building_ids},
+    )
 
 
 def _may_skip_link_checks(conn: Connection) -> bool:
@@ -396,6 +407,10 @@ def _import(
     counts = {"buildings": 0, "parts": 0, "surfaces": 0, "appearances": len(header.appearances)}
     late: list[Appearance] = []
     ordinal = 0
+    # a split file's second part: its buildings' ordinals follow the first part's, whose count is
+    # estimated before its batches arrive (`BatchStream.first_part_estimate`) and checked at the end
+    ordinal2 = 0
+    second_ids: list[int] = []
     timings = {"wait_for_reader": 0.0, "write": 0.0}
 
     def report(stage: str) -> None:
@@ -435,9 +450,14 @@ def _import(
                     t_wait = time.perf_counter()
                     continue
                 t_write = time.perf_counter()
-                _write_lines(conn, obj, model_id, ordinal, image_dir=image_dir)
+                if kind == "batch2":  # second part of a split file, numbered after the first
+                    o0 = (stream.first_part_estimate or 0) + ordinal2
+                    second_ids += _write_lines(conn, obj, model_id, o0, image_dir=image_dir)
+                    ordinal2 += len(obj.building_tails)
+                else:
+                    _write_lines(conn, obj, model_id, ordinal, image_dir=image_dir)
+                    ordinal += len(obj.building_tails)
                 timings["write"] += time.perf_counter() - t_write
-                ordinal += len(obj.building_tails)
                 n_parts = sum(obj.is_part)
                 counts["buildings"] += len(obj.is_part) - n_parts
                 counts["parts"] += n_parts
@@ -445,6 +465,8 @@ def _import(
                 counts["appearances"] += sum(len(a) for _, a in obj.appearances)
                 report("writing")
                 t_wait = time.perf_counter()
+            if second_ids and ordinal != stream.first_part_estimate:
+                _renumber(conn, second_ids, ordinal - (stream.first_part_estimate or 0))
             counts["appearances"] += len(late)
             report("finishing")
             t_fin = time.perf_counter()
