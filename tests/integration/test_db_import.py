@@ -411,13 +411,13 @@ def test_split_import_numbers_the_second_part_right_when_the_estimate_is_wrong(
     end = src.index(b">", k) + 1 if new.endswith(b"Part>") else k + len(old)
     path = tmp_path / "edited.gml"
     path.write_bytes(src[:k] + new + src[end:])
-    one = import_citygml(
-        db_engine, path, name=f"one-{request.node.callspec.id}", options=ImportOptions(parallel_read=False, batch_size=20)
-    )
+    case = request.node.callspec.id
+    one_opts = ImportOptions(parallel_read=False, batch_size=20)
+    one = import_citygml(db_engine, path, name=f"one-{case}", options=one_opts)
     two = import_citygml(
         db_engine,
         path,
-        name=f"two-{request.node.callspec.id}",
+        name=f"two-{case}",
         options=ImportOptions(parallel_read=True, split_above_bytes=1, batch_size=20),
     )
     assert len(two.reader_cpu_s) == 2 and one.reader_cpu_s == ()
