@@ -20,9 +20,14 @@ in place and usable throughout, and rows of other models are touched only by a r
 final step. Two imports of one name do not wait on each other: the second is refused
 (`ModelExistsError`). The COPY text of a batch (geometries as hex EWKB built in Python with
 numpy, planes, footprints, envelopes, checks: `db.import_rows`) is made where the file is read;
-for big files that is a separate reader process, or two, one per half (`db.import_stream`), so
-parsing overlaps with the database's work. Where the role may, the foreign keys of the copied
-rows (all pointing to rows of this import) are not checked row by row (`own_links_unchecked`).
+for big files that is a separate reader process, or two, one per part (`db.import_stream`), so
+parsing overlaps with the database's work; the readers start before anything else (before the
+database layer loads, when the command line starts them: `db.import_stream.prestart`), and the
+second part's batches are written whenever the first reader has none ready, numbered after the
+first part (`db.import_model.renumber` corrects them where its count, estimated from its bytes,
+was wrong). The model row's steps (start, finish, statistics) are in `db.import_model`.
+Where the role may, the foreign keys of the copied rows (all pointing to rows of this import)
+are not checked row by row (`own_links_unchecked`).
 Row ids are reserved from the sequences in one round trip per batch, so parents, roots, surfaces
 and texture targets are linked without further queries.
 
@@ -36,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -44,7 +48,6 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import psycopg
 from sqlalchemy import Connection, Engine, text
 from sqlalchemy.exc import IntegrityError
@@ -52,18 +55,15 @@ from sqlalchemy.exc import IntegrityError
 from db.appearance_images import store_appearance_images
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
-from db.errors import InputDataError, ModelExistsError
-from db.geomcodec import encode_envelope
+from db.errors import InputDataError
+from db.import_model import analyze, finish_model, renumber, start_model
 from db.import_options import ImportOptions
 from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
 from db.import_signals import ImportInterrupted, Interrupts, abandon
 from db.import_stream import BatchStream
 from db.ops import (
-    IMPORT_MODEL_LOCK,
-    IMPORT_NAME_LOCK,
     copy_block,
     copy_rows,
-    delete_model,
     remove_dead_imports,
     reserve_ids,
     spatial_index_problems,
@@ -72,7 +72,6 @@ from db.session import as_engine
 from db.settings import Settings
 from db.srid import database_srid, model_epsg, to_database
 from workers.pipeline.geometry.citymodel import Appearance, ModelHeader
-from workers.pipeline.geometry.crs import UnknownCRSError, vertical_epsg
 
 __all__ = ["ImportInterrupted", "ImportOptions", "ImportProgress", "ImportSummary", "import_citygml"]
 
@@ -130,13 +129,6 @@ def model_crs(path: Path, header: ModelHeader, crs: str | None, huge_tree: bool 
     return srs or "", model_epsg(srs, what=f"{path}")
 
 
-def _vertical(srs_name: str | None) -> int | None:
-    try:
-        return vertical_epsg(srs_name) if srs_name else None
-    except UnknownCRSError:
-        return None
-
-
 def _write_lines(
     conn: Connection, lines: BatchLines, model_id: int, ordinal0: int, image_dir: Path | None = None
 ) -> list[int]:
@@ -171,15 +163,6 @@ def _write_lines(
     return bids
 
 
-def _renumber(conn: Connection, building_ids: list[int], delta: int) -> None:
-    """Shift the ordinals of the buildings `building_ids` by `delta` (the second part of a split
-    file when the first part's building count estimated from its bytes was wrong)."""
-    conn.execute(
-        text("UPDATE building SET ordinal = ordinal + :d WHERE id = ANY(:ids)"),
-        {"d": delta, "ids": building_ids},
-    )
-
-
 def _may_skip_link_checks(conn: Connection) -> bool:
     """True when this session may set `session_replication_role` (superuser, or SET granted:
     PostgreSQL 15+) and the schema has no trigger of its own (replica mode would skip it too)."""
@@ -196,126 +179,6 @@ def _may_skip_link_checks(conn: Connection) -> bool:
         return True
     return version >= 150000 and bool(
         conn.execute(text("SELECT has_parameter_privilege('session_replication_role', 'SET')")).scalar_one()
-    )
-
-
-def _start_model(
-    conn: Connection,
-    header: ModelHeader,
-    path: Path,
-    name: str,
-    srid: int,
-    replace: bool,
-    image_dir: Path | None = None,
-    skip_link_checks: bool = False,
-) -> tuple[int, bool]:
-    """Begin the import's transaction: take the name lock, create the `city_model` row. When a
-    model of that name exists (and `replace` is set) the new one is written under a temporary name
-    and takes over in `_finish_model`, so the old model stays as it is until the commit."""
-    free = conn.execute(
-        text("SELECT pg_try_advisory_xact_lock(:ns, hashtext(:n))"), {"ns": IMPORT_NAME_LOCK, "n": name}
-    ).scalar_one()
-    if not free:
-        raise ModelExistsError(f"city model {name!r} is being imported by another session")
-    # who we are for pg_stat_activity; the server notices a vanished client within a second
-    # (PostgreSQL 14+), even while a statement of ours runs or waits for a lock
-    conn.execute(
-        text(
-            "SELECT set_config('application_name', :app, true), "
-            "CASE WHEN current_setting('server_version_num')::int >= 140000 "
-            "THEN set_config('client_connection_check_interval', '1000', true) END"
-        ),
-        {"app": f"citytherm import {name}"[:63]},
-    )
-    if skip_link_checks:  # until `_finish_model`: the rows copied link only to rows of this import
-        conn.execute(text("SET LOCAL session_replication_role = replica"))
-    old = conn.execute(text("SELECT id FROM city_model WHERE name = :n"), {"n": name}).first()
-    replaced = old is not None
-    if replaced and not replace:
-        raise ModelExistsError(f"city model {name!r} exists already (import with replace to overwrite)")
-    model_id = conn.execute(
-        text(
-            "INSERT INTO city_model (name, srs_name, srid, vertical_epsg, citygml_version, gml_name, "
-            "source_file, building_count, part_count, surface_count, state) "
-            "VALUES (:name, :srs, :srid, :vert, :ver, :gname, :src, 0, 0, 0, 'importing') RETURNING id"
-        ),
-        {
-            "name": f"{name}#importing-{uuid.uuid4().hex}" if replaced else name,
-            "srs": header.srs_name,
-            "srid": srid,
-            "vert": _vertical(header.srs_name),
-            "ver": header.version,
-            "gname": header.name,
-            "src": str(path.resolve()),
-        },
-    ).scalar_one()
-    conn.execute(text("SELECT pg_advisory_xact_lock(:ns, :m)"), {"ns": IMPORT_MODEL_LOCK, "m": model_id})
-    if header.appearances:
-        rows = AppearanceRows()
-        collect_appearance_rows(
-            rows, header.appearances, model_id=model_id, building_row=None, surface_row={}
-        )
-        app_ids = rows.write(conn, copy_rows, reserve_ids)
-        if image_dir is not None:
-            store_appearance_images(conn, app_ids, image_dir)
-    return model_id, replaced
-
-
-def _finish_model(
-    conn: Connection,
-    model_id: int,
-    name: str,
-    counts: dict[str, int],
-    late: list[Appearance],
-    image_dir: Path | None = None,
-) -> None:
-    """Late appearances, cross-batch texture targets, counts, envelope; the model takes its name
-    (replacing an older model of that name in the same transaction); foreign keys act again."""
-    if conn.execute(text("SELECT current_setting('session_replication_role') <> 'origin'")).scalar_one():
-        conn.execute(text("SET LOCAL session_replication_role = origin"))
-    old = conn.execute(
-        text("SELECT id FROM city_model WHERE name = :n AND id <> :m FOR UPDATE"), {"n": name, "m": model_id}
-    ).first()
-    if old is not None:
-        delete_model(conn, old[0])
-    conn.execute(text("UPDATE city_model SET name = :n WHERE id = :m"), {"n": name, "m": model_id})
-    if late:
-        rows = AppearanceRows()
-        collect_appearance_rows(rows, late, model_id=model_id, building_row=None, surface_row={})
-        app_ids = rows.write(conn, copy_rows, reserve_ids)
-        if image_dir is not None:
-            store_appearance_images(conn, app_ids, image_dir)
-    # texture targets not resolved within their batch (CityModel-level appearances, cross-building)
-    conn.execute(
-        text(
-            "UPDATE texture_param tp SET surface_id = s.id FROM surface_data sd, appearance a, surface s "
-            "WHERE tp.surface_data_id = sd.id AND sd.appearance_id = a.id AND a.city_model_id = :m "
-            "AND tp.surface_id IS NULL AND s.city_model_id = :m AND s.gml_id = tp.target_gml_id"
-        ),
-        {"m": model_id},
-    )
-    box = conn.execute(
-        text(
-            "SELECT ST_XMin(e), ST_YMin(e), ST_ZMin(e), ST_XMax(e), ST_YMax(e), ST_ZMax(e), "
-            "Find_SRID(current_schema()::text, 'building', 'envelope') "
-            "FROM (SELECT ST_3DExtent(envelope) AS e FROM building "
-            "WHERE city_model_id = :m AND NOT is_part) x"
-        ),
-        {"m": model_id},
-    ).one()
-    envelope = None if box[0] is None else encode_envelope(np.array(box[:3]), np.array(box[3:6]), box[6])
-    conn.execute(
-        text(
-            "UPDATE city_model SET building_count = :b, part_count = :p, surface_count = :s, "
-            "state = 'complete', envelope = CAST(:env AS geometry) WHERE id = :m"
-        ),
-        {
-            "m": model_id,
-            "b": counts["buildings"],
-            "p": counts["parts"],
-            "s": counts["surfaces"],
-            "env": envelope,
-        },
     )
 
 
@@ -440,7 +303,7 @@ def _import(
                     problem,
                 )
             skip_checks = opts.own_links_unchecked and _may_skip_link_checks(conn)
-            model_id, replaced = _start_model(conn, header, path, name, srid, replace, image_dir, skip_checks)
+            model_id, replaced = start_model(conn, header, path, name, srid, replace, image_dir, skip_checks)
             timings["start"] = time.perf_counter() - t0
             t_wait = time.perf_counter()
             for kind, obj in stream:
@@ -466,11 +329,11 @@ def _import(
                 report("writing")
                 t_wait = time.perf_counter()
             if second_ids and ordinal != stream.first_part_estimate:
-                _renumber(conn, second_ids, ordinal - (stream.first_part_estimate or 0))
+                renumber(conn, second_ids, ordinal - (stream.first_part_estimate or 0))
             counts["appearances"] += len(late)
             report("finishing")
             t_fin = time.perf_counter()
-            _finish_model(conn, model_id, name, counts, late, image_dir=image_dir)
+            finish_model(conn, model_id, name, counts, late, image_dir=image_dir)
             t_commit = time.perf_counter()
             timings["finish"] = t_commit - t_fin
             # from the commit on a signal waits until the import is over: it must not report a
@@ -489,10 +352,7 @@ def _import(
             raise
     report("committed")
     t_an = time.perf_counter()
-    with engine.begin() as conn:
-        # planner statistics for the key columns (geometry statistics are slow to gather)
-        conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")
-        conn.exec_driver_sql("ANALYZE surface (city_model_id, building_id)")
+    analyze(engine)
     timings["analyze"] = time.perf_counter() - t_an
     return ImportSummary(
         model_id=model_id,
