@@ -6,7 +6,9 @@ tile, 109 buildings + 55 parts each), creates a fresh bench database (`citytherm
 server of `CITYTHERM_BENCH_PG`, default `postgresql://postgres@127.0.0.1:5432`), migrates it, then
 runs each phase in its own subprocess so that peak RSS figures are the phase's own:
 
-- import: `import_citygml` (reader process, COPY batches, one transaction, spatial indexes kept):
+- import: `import_citygml` (reader processes started first, before the database layer loads, as
+  `citytherm import` starts them: `db.import_stream.prestart`; COPY batches, one transaction,
+  spatial indexes kept):
   buildings/s and parts/s (counted apart) over the phase's whole wall time including the Python
   start-up (`*_per_s`) and over the import call alone (`import_call`), surfaces/s, MB/s; peak RSS
   and CPU seconds of every process: the importer, its reader process and the PostgreSQL backend
