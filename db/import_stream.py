@@ -324,8 +324,10 @@ class BatchStream:
         arrives first)."""
         first = self._procs[0]
         assert first.stdout is not None and self._spill is not None
-        fd1 = first.stdout.fileno()  # read unbuffered, so that `select` sees every byte not read yet
+        fd1 = first.stdout.fileno()  # read unbuffered, so that `poll` sees every byte not read yet
         read1 = partial(_read_fd_exactly, fd1)
+        ready1 = select.poll()  # poll, not select: any descriptor number
+        ready1.register(fd1, select.POLLIN)
         kind, obj = self._frame(read1, first)
         if kind == "unsplit":  # the first half is not independent: one reader for the whole file
             self.close()
@@ -347,7 +349,7 @@ class BatchStream:
                 if pending is not None and pending[0] in ("done", "failed"):
                     second_state, failed_code, pending = pending[0], pending[1], None
             # the first reader's frames first: it waits for us, the second one does not
-            if select.select([fd1], [], [], 0.0 if pending is not None else 0.02)[0]:
+            if ready1.poll(0 if pending is not None else 20):
                 kind, obj = self._frame(read1, first)
                 if kind == "done":
                     first_count = obj[1]
