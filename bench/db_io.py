@@ -6,7 +6,9 @@ tile, 109 buildings + 55 parts each), creates a fresh bench database (`citytherm
 server of `CITYTHERM_BENCH_PG`, default `postgresql://postgres@127.0.0.1:5432`), migrates it, then
 runs each phase in its own subprocess so that peak RSS figures are the phase's own:
 
-- import: `import_citygml` (reader process, COPY batches, one transaction, spatial indexes kept):
+- import: `import_citygml` (reader processes started first, before the database layer loads, as
+  `citytherm import` starts them: `db.import_stream.prestart`; COPY batches, one transaction,
+  spatial indexes kept):
   buildings/s and parts/s (counted apart) over the phase's whole wall time including the Python
   start-up (`*_per_s`) and over the import call alone (`import_call`), surfaces/s, MB/s; peak RSS
   and CPU seconds of every process: the importer, its reader process and the PostgreSQL backend
@@ -22,8 +24,9 @@ Bars (issue 13): import >= 2,000 buildings/s wall time including start-up, peak 
 importer and of its reader process < 300 MB each.
 
 Usage: `python bench/db_io.py [--copies 87] [--file PATH] [--checks fast|full|none] [--db NAME]
-[--keep] [--one-reader] [--check-links]` (the last two: one reader process instead of two, and
-the foreign keys checked row by row, as imports were before; for comparison) prints JSON
+[--keep] [--one-reader] [--check-links] [--split-at F]` (the last three: one reader process
+instead of two, the foreign keys checked row by row, as imports were before, and where the file
+is cut for the two readers; for comparison) prints JSON
 (`--db`: the bench database's name, default `citytherm_bench`; it is dropped and created afresh,
 so give one of your own on a shared server).
 """
@@ -109,13 +112,29 @@ def cpu_budget(cpu_s: dict[str, float], buildings: int, parts: int, cores: int =
 
 
 def phase_import(
-    url: str, path: Path, checks: str, one_reader: bool = False, check_links: bool = False
+    url: str,
+    path: Path,
+    checks: str,
+    one_reader: bool = False,
+    check_links: bool = False,
+    split_at: float | None = None,
 ) -> dict:
     import resource
 
+    from db.import_options import ImportOptions
+    from db.import_stream import prestart
+
+    # as `citytherm import` does: the reader processes start before the database layer is loaded
+    opts = ImportOptions(checks=checks, own_links_unchecked=not check_links)
+    if split_at is not None:
+        opts = dataclasses.replace(opts, split_at=split_at)
+    if one_reader:
+        opts = dataclasses.replace(opts, split_above_bytes=None)
+    readers = prestart(path, opts)
+
     from sqlalchemy import create_engine, text
 
-    from db.importer import ImportOptions, import_citygml
+    from db.importer import import_citygml
     from db.session import sqlalchemy_url
 
     # the importer's connections carry this name, so that their backends can be found afterwards
@@ -123,10 +142,7 @@ def phase_import(
     engine = create_engine(sqlalchemy_url(url), pool_pre_ping=True, connect_args={"application_name": app})
     c0 = time.process_time()
     t0 = time.perf_counter()
-    opts = ImportOptions(checks=checks, own_links_unchecked=not check_links)
-    if one_reader:
-        opts = dataclasses.replace(opts, split_above_bytes=None)
-    s = import_citygml(engine, path, name="bench", options=opts)
+    s = import_citygml(engine, path, name="bench", options=opts, readers=readers)
     dt = time.perf_counter() - t0
     cpu_importer = time.process_time() - c0
     reader = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -237,6 +253,7 @@ def main() -> None:
     ap.add_argument("--checks", default="fast", choices=("fast", "full", "none"))
     ap.add_argument("--one-reader", action="store_true", help="one reader process, not one per half")
     ap.add_argument("--check-links", action="store_true", help="check foreign keys row by row")
+    ap.add_argument("--split-at", type=float, help="where the file is cut for two readers (fraction)")
     ap.add_argument("--keep", action="store_true", help="keep the bench database and files")
     ap.add_argument("--db", default=BENCH_DB, help="bench database name (dropped and created afresh)")
     ap.add_argument("--phase", choices=("import", "export"), help=argparse.SUPPRESS)
@@ -244,7 +261,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.phase == "import":
-        print(json.dumps(phase_import(args.url, args.file, args.checks, args.one_reader, args.check_links)))
+        a = args
+        print(json.dumps(phase_import(a.url, a.file, a.checks, a.one_reader, a.check_links, a.split_at)))
         return
     if args.phase == "export":
         print(json.dumps(phase_export(args.url, args.out)))
@@ -264,6 +282,8 @@ def main() -> None:
         flags = [
             f for f, on in (("--one-reader", args.one_reader), ("--check-links", args.check_links)) if on
         ]
+        if args.split_at is not None:
+            flags += ["--split-at", str(args.split_at)]
         imp = _run_phase(
             "--phase", "import", "--url", url, "--file", str(big), "--checks", args.checks, *flags
         )

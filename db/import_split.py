@@ -5,7 +5,8 @@ In: a CityGML file path. Out: a `SplitPlan` (or None when the file is not cut) a
 `Spliced` bytes a reader parses instead of the file:
 
 - first half: the file from its start up to the `cityObjectMember` start tag found at or after
-  the middle of the file (`split`), then the end tag of the root element;
+  the cut (`split`; the middle of the file, or the fraction `at` of its size), then the end tag
+  of the root element ("half" is used for either part whatever their sizes);
 - second half: the file's header (from its start up to its first `cityObjectMember`: prolog,
   `CityModel` start tag with its namespace declarations, name, envelope, model-level
   appearances), as many newlines as the skipped part has (so that the lines of every error
@@ -32,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
-__all__ = ["Spliced", "SplitPlan", "first_half", "part_is_plain", "plan_split", "second_half"]
+__all__ = ["Spliced", "SplitPlan", "first_half", "part_is_plain", "plan_split", "scan_part", "second_half"]
 
 _ROOT = re.compile(rb"<([A-Za-z_][\w.\-]*:)?CityModel[\s>]")
 _MEMBER = re.compile(rb"<([A-Za-z_][\w.\-]*:)?cityObjectMember[\s>]")
@@ -41,6 +42,10 @@ _MEMBER = re.compile(rb"<([A-Za-z_][\w.\-]*:)?cityObjectMember[\s>]")
 #: in every appearance element (rare bytes, found with memchr; a `!` or `?` in a text only costs
 #: the split)
 _NOT_PLAIN = (b"!", b"?", b"ppearance")
+#: the names of start tags of buildings and building parts with an attribute (`gml:id`), for
+#: `scan_part` (one regular expression pass: about as fast as one `bytes.count`)
+_BUILDING_TAG = re.compile(rb"Building(?:Part)? ")
+_BUILDING_TAG_MAX = len(b"BuildingPart ")
 _HEAD_BYTES = 1 << 20
 _CHUNK = 1 << 22
 
@@ -62,10 +67,13 @@ class SplitPlan:
     root_qname: str
 
 
-def plan_split(path: Path, min_bytes: int) -> SplitPlan | None:
-    """Where to cut the file `path` in two (module docstring); None when it is smaller than
-    `min_bytes`, not in an ASCII-compatible encoding, its root is not a `CityModel` starting in its
-    first MB, its header does not end there, or no `cityObjectMember` starts in its second half."""
+def plan_split(path: Path, min_bytes: int, at: float = 0.5) -> SplitPlan | None:
+    """Where to cut the file `path` in two (module docstring): at the first `cityObjectMember`
+    from byte `at * size` on (`0 < at < 1`). None when the file is smaller than `min_bytes`, not
+    in an ASCII-compatible encoding, its root is not a `CityModel` starting in its first MB, its
+    header does not end there, or no `cityObjectMember` starts after that byte."""
+    if not 0.0 < at < 1.0:
+        raise ValueError(f"plan_split: the cut must lie inside the file (0 < at < 1), not {at}")
     size = path.stat().st_size
     if size < max(min_bytes, 1):
         return None
@@ -78,7 +86,7 @@ def plan_split(path: Path, min_bytes: int) -> SplitPlan | None:
         if root is None or first is None or b"<!--" in head[: root.start()]:
             return None
         tag = first.group(0)[:-1]  # b"<core:cityObjectMember"
-        pos = mm.find(tag, max(size // 2, first.end()))
+        pos = mm.find(tag, max(int(size * at), first.end()))
         while pos >= 0 and mm[pos + len(tag) : pos + len(tag) + 1] not in (b" ", b">", b"\t", b"\n", b"\r"):
             pos = mm.find(tag, pos + 1)
         root_qname = root.group(0)[1:-1]
@@ -91,7 +99,16 @@ def plan_split(path: Path, min_bytes: int) -> SplitPlan | None:
 def part_is_plain(path: Path, start: int, end: int) -> bool:
     """True when bytes `[start, end)` of `path` hold none of the markup that would make the halves
     depend on each other (comments, CDATA, processing instructions, DOCTYPE, appearances)."""
-    overlap = max(map(len, _NOT_PLAIN)) - 1
+    return scan_part(path, start, end)[0]
+
+
+def scan_part(path: Path, start: int, end: int) -> tuple[bool, int]:
+    """(`part_is_plain`, an estimate of the buildings and building parts whose start tags lie in
+    `[start, end)`: `Building ` and `BuildingPart ` as in `<bldg:Building gml:id=...`).
+    The estimate is exact for the usual file (every building with a `gml:id`, none nested in a
+    group); whoever uses it must check it against the buildings actually read."""
+    overlap = max(*map(len, _NOT_PLAIN), _BUILDING_TAG_MAX) - 1
+    count = 0
     with open(path, "rb") as f:
         f.seek(start)
         tail = b""
@@ -102,9 +119,13 @@ def part_is_plain(path: Path, start: int, end: int) -> bool:
             start += len(chunk)
             chunk = tail + chunk
             if any(needle in chunk for needle in _NOT_PLAIN):
-                return False
+                return False, count
+            # a tag is counted in the chunk where it ends (`tail` repeats the previous one's end)
+            seen = len(tail)
+            found = _BUILDING_TAG.finditer(chunk, max(0, seen - _BUILDING_TAG_MAX))
+            count += sum(1 for m in found if m.end() > seen)
             tail = chunk[-overlap:]
-    return True
+    return True, count
 
 
 def _newlines(path: Path, start: int, end: int) -> int:

@@ -19,184 +19,82 @@ are raised here (`CityGMLError` for a bad file); `peak_rss_mb` of the reader pro
 of them) is available after the stream ends.
 
 With `split_above_bytes` a file at least that large is read by two reader processes at once, each
-parsing one half (`db.import_split`: cut at a `cityObjectMember`, each half a well-formed document
-with the file's header). The first sends through its pipe; the second writes into an unlinked
-temporary file, read once the first half is done, so the batches keep the file's order. When a
-half is not independent of the other (comments, appearances, ...: the first reader says so before
-it sends anything) the file is read by one reader; when the second half has a top-level building
-without `gml:id` (its generated id counts the buildings before it), or the second reader could not
-finish its temporary file, the buildings after the first half are read from the whole file. Both
-readers die with the importer as the single one does.
+parsing one part (`db.import_split`: cut at a `cityObjectMember`, each part a well-formed document
+with the file's header; the reader process's side is `db.import_child`). The first sends through
+its pipe; the second writes into an unlinked temporary file. The first part's batches come as
+("batch", ...) in order, the second part's as ("batch2", ...) in order, whenever the first reader
+has none ready, so that the database never waits while either reader has a batch: the importer
+numbers the second part's buildings from `first_part_estimate` (the first part's buildings and
+parts counted from its bytes, sent by the first reader before its batches) and corrects them in
+the rare file where that count was wrong. When a part is not independent of the other (comments,
+appearances, ...: the first reader says so before it sends anything) the file is read by one
+reader; when the second part has a top-level building without `gml:id` (its generated id counts
+the buildings before it), or the second reader could not finish its temporary file, the
+buildings after those it sent are read from the whole file. Both readers die with the importer
+as the single one does. The readers can be started before the transform is known (`spawn`,
+`prestart`): they load their modules and parse while the importer loads its own.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import os
 import pickle
-import signal
-import struct
+import select
 import subprocess
 import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from functools import partial
+from os import PathLike
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any, BinaryIO
+from typing import IO, TYPE_CHECKING, Any, BinaryIO
 
-from db.citygml import reader as citygml_reader
-from db.citygml.names import CityGMLError
-from db.import_split import Spliced, SplitPlan, first_half, part_is_plain, plan_split, second_half
-from workers.pipeline.geometry.citymodel import Building
+from db.import_child import LEN, batches
+from db.import_options import ImportOptions
+from db.import_split import SplitPlan, plan_split
 
-__all__ = ["BatchStream"]
+if TYPE_CHECKING:  # this module imports nothing heavy: `prestart` runs before the database layer loads
+    from workers.pipeline.geometry.citymodel import Building
 
-_LEN = struct.Struct("<Q")
-#: the reader process's program: settings (a pickle) on standard input, frames on standard output.
+__all__ = ["BatchStream", "prestart"]
+
+log = logging.getLogger(__name__)
+
+#: the reader process's program: settings (a pickle) on standard input, then the transform (a
+#: pickle, read when the first batch is parsed); frames on standard output.
 _CHILD = (
     "import pickle, sys; cfg = pickle.load(sys.stdin.buffer); sys.path[:0] = cfg['sys_path']; "
-    "from db.import_stream import _child_main; _child_main(cfg)"
+    "from db.import_child import child_main; child_main(cfg)"
 )
-_PR_SET_PDEATHSIG = 1
-#: exit code of a second-half reader that met a top-level building without `gml:id`
-_NEEDS_WHOLE_FILE = 3
 
 
-class _GeneratedIdError(Exception):
-    """A top-level building without `gml:id` in the second half of a split file."""
+def _read_fd_exactly(fd: int, n: int) -> bytes | None:
+    """`n` bytes from the file descriptor `fd` (a pipe), None at its end."""
+    chunks = []
+    while n > 0:
+        b = os.read(fd, min(n, 1 << 20))
+        if not b:
+            return None
+        chunks.append(b)
+        n -= len(b)
+    return b"".join(chunks)
 
 
-@dataclasses.dataclass
-class _Part:
-    """What one reader process reads: the whole file (`pieces` None) or a spliced half; `skip`
-    top-level buildings left out first; `strict_ids`: stop at a building whose id is generated."""
-
-    pieces: list[Any] | None = None
-    skip: int = 0
-    strict_ids: bool = False
-    count: int = 0  # top-level buildings sent
-
-
-def _events(path: Path, huge_tree: bool, part: _Part | None = None) -> Iterator[tuple[str, Any]]:
-    """("building", Building) in document order, and ("appearance", Appearance) for CityModel-level
-    appearances after the buildings."""
-    part = part or _Part()
-    source = None if part.pieces is None else partial(Spliced, path, part.pieces)
-    seen = 0
-    for kind, obj in citygml_reader._Stream(path, huge_tree, source=source).events():
-        if kind == "building":
-            seen += 1
-            if seen <= part.skip:
-                continue
-            if part.strict_ids and obj.generated_id:
-                raise _GeneratedIdError(obj.id)
-            part.count += 1
-            yield kind, obj
-        elif kind == "appearance":
-            yield kind, obj
-
-
-def _batches(
-    path: Path,
-    huge_tree: bool,
-    batch_size: int,
-    transform: Callable[[list[Building]], Any],
-    part: _Part | None = None,
-) -> Iterator[tuple[str, Any]]:
-    pending: list[Building] = []
-    for kind, obj in _events(path, huge_tree, part):
-        if kind == "appearance":
-            yield kind, obj
-            continue
-        pending.append(obj)
-        if len(pending) >= batch_size:
-            yield "batch", transform(pending)
-            pending = []
-    if pending:
-        yield "batch", transform(pending)
-
-
-def _peak_rss_mb() -> float:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:  # pragma: no cover - not Linux
-        pass
-    return float("nan")
-
-
-def _cpu_s() -> float:
-    """CPU seconds (user + system) of this process so far, its start-up included."""
-    t = os.times()
-    return t.user + t.system
-
-
-def _die_with_parent(parent_pid: int) -> None:
-    """SIGKILL for this process when its parent dies (Linux); exit now if it is gone already."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
-    if os.getppid() != parent_pid:  # the parent died before the request took effect
-        os._exit(1)
-
-
-def _send(out: BinaryIO, item: tuple[str, Any]) -> None:
-    data = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
-    out.write(_LEN.pack(len(data)))
-    out.write(data)
-    out.flush()
-
-
-def _child_part(path: Path, cfg: dict[str, Any]) -> _Part | None:
-    """The part this reader reads; None when its half of a split file is not independent."""
-    half = cfg.get("half")
-    if half is None:
-        return _Part(skip=cfg.get("skip", 0))
-    plan = SplitPlan(**cfg["plan"])
-    start, end = (plan.header_end, plan.split) if half == 1 else (plan.split, plan.size)
-    if not part_is_plain(path, start, end):
-        return None
-    pieces = first_half(plan) if half == 1 else second_half(path, plan)
-    return _Part(pieces=pieces, strict_ids=half == 2)
-
-
-def _child_main(cfg: dict[str, Any]) -> None:
-    """Reader process: every batch, then ("done", (peak RSS, top-level buildings sent, CPU s)) or
-    ("error", (kind, message, is_citygml)); a split file's half that is not independent:
-    ("unsplit", None) first (first half) or exit code `_NEEDS_WHOLE_FILE` (second half)."""
-    _die_with_parent(cfg["parent_pid"])
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
-    # frames go to a private copy of stdout; stray prints of libraries go to stderr instead
-    out = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
-    path = Path(cfg["path"])
-    try:
-        transform = pickle.loads(cfg["transform"])
-        part = _child_part(path, cfg)
-        if part is None:
-            if cfg["half"] == 2:
-                os._exit(_NEEDS_WHOLE_FILE)
-            _send(out, ("unsplit", None))
-            os._exit(0)
-        for item in _batches(path, cfg["huge_tree"], cfg["batch_size"], transform, part):
-            _send(out, item)
-        _send(out, ("done", (_peak_rss_mb(), part.count, _cpu_s())))
-    except (BrokenPipeError, KeyboardInterrupt):  # the importer is gone or stopped us
-        os._exit(1)
-    except _GeneratedIdError:
-        out.flush()
-        os._exit(_NEEDS_WHOLE_FILE)
-    except BaseException as exc:
-        with contextlib.suppress(BrokenPipeError):
-            _send(out, ("error", (type(exc).__name__, str(exc), isinstance(exc, CityGMLError))))
-    os._exit(0)
+def _pread_exactly(fd: int, n: int, pos: int) -> bytes:
+    """`n` bytes of the file `fd` from offset `pos` (known to be there)."""
+    chunks = []
+    while n > 0:
+        b = os.pread(fd, n, pos)
+        if not b:
+            raise OSError(f"temporary file of the second reader shorter than it was ({pos})")
+        chunks.append(b)
+        n -= len(b)
+        pos += len(b)
+    return b"".join(chunks)
 
 
 def _read_exactly(f: BinaryIO, n: int) -> bytes | None:
@@ -218,17 +116,20 @@ class BatchStream:
         path: Path,
         *,
         batch_size: int,
-        transform: Callable[[list[Building]], Any] = list,
+        transform: Callable[[list[Building]], Any] | None = list,
         huge_tree: bool = False,
         parallel: bool = True,
         split_above_bytes: int | None = None,
+        split_at: float = 0.5,
     ) -> None:
         self.path = path
         self.batch_size = batch_size
+        #: None until `start(transform)`: the readers parse their first batch meanwhile
         self.transform = transform
         self.huge_tree = huge_tree
         self.parallel = parallel and bool(sys.executable)  # an embedded interpreter cannot start one
         self.split_above_bytes = split_above_bytes
+        self.split_at = split_at
         self.peak_rss_mb: float | None = None
         #: CPU seconds of each reader process that ended normally, start-up included
         self.reader_cpu_s: list[float] = []
@@ -237,6 +138,12 @@ class BatchStream:
         self._procs: list[subprocess.Popen[bytes]] = []
         self._spill: IO[bytes] | None = None
         self._plan: SplitPlan | None = None
+        self._spill_pos = 0
+        #: the first part's buildings and parts as estimated from its bytes (split files: the
+        #: ordinals of the second part's "batch2" start there; the importer checks it)
+        self.first_part_estimate: int | None = None
+        #: readers started before the transform was known: they wait for it on standard input
+        self._waiting: list[subprocess.Popen[bytes]] = []
 
     @property
     def reader_pid(self) -> int | None:
@@ -255,7 +162,6 @@ class BatchStream:
             "path": str(self.path),
             "huge_tree": self.huge_tree,
             "batch_size": self.batch_size,
-            "transform": pickle.dumps(self.transform),
             **part,
         }
         proc = subprocess.Popen(
@@ -265,17 +171,33 @@ class BatchStream:
         assert proc.stdin is not None
         try:
             proc.stdin.write(pickle.dumps(cfg))
-            proc.stdin.close()
+            proc.stdin.flush()
         except BrokenPipeError:  # it died at once: reported by the first read
             pass
+        self._waiting.append(proc)
+        self._send_transform()
         return proc
 
-    def start(self) -> BatchStream:
-        """Start the reader process(es) now (they then parse while the caller prepares the database)."""
+    def _send_transform(self) -> None:
+        """Send the transform to the readers waiting for it (once it is known)."""
+        if self.transform is None:
+            return
+        data = pickle.dumps(self.transform)
+        waiting, self._waiting = self._waiting, []
+        for proc in waiting:
+            assert proc.stdin is not None
+            with contextlib.suppress(BrokenPipeError):  # it died: reported by the first read
+                proc.stdin.write(data)
+                proc.stdin.close()
+
+    def spawn(self) -> BatchStream:
+        """Start the reader process(es) now, before the transform is known (`start` sends it):
+        they load their modules and parse while the caller loads its own and prepares the
+        database."""
         if not self.parallel or self._procs:
             return self
         if self.split_above_bytes is not None:
-            self._plan = plan_split(self.path, self.split_above_bytes)
+            self._plan = plan_split(self.path, self.split_above_bytes, at=self.split_at)
         if self._plan is None:
             self.mode = "one"
             self._spawn(subprocess.PIPE)
@@ -287,8 +209,19 @@ class BatchStream:
         self._spawn(self._spill, half=2, plan=plan)
         return self
 
+    def start(self, transform: Callable[[list[Building]], Any] | None = None) -> BatchStream:
+        """Start the reader process(es) if `spawn` has not, with `transform` (when given: else
+        the one of the constructor); they then parse while the caller prepares the database."""
+        if transform is not None:
+            self.transform = transform
+        if self.transform is None:
+            raise ValueError("BatchStream.start: no transform given")
+        self.spawn()
+        self._send_transform()
+        return self
+
     def __enter__(self) -> BatchStream:
-        return self.start()
+        return self.start() if self.transform is not None else self.spawn()
 
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
@@ -299,10 +232,14 @@ class BatchStream:
         """Stop the reader processes (those still running) and release their pipes and files."""
         procs, self._procs = self._procs, []
         spill, self._spill = self._spill, None
+        self._waiting = []
         try:
             for proc in procs:
                 if proc.poll() is None:
                     proc.kill()  # it holds nothing worth a graceful end: a file it reads, a pipe
+                if proc.stdin is not None and not proc.stdin.closed:
+                    with contextlib.suppress(OSError):
+                        proc.stdin.close()
             for proc in procs:
                 try:
                     proc.wait(timeout=10)
@@ -313,33 +250,85 @@ class BatchStream:
             if spill is not None:
                 spill.close()
 
+    def _decode(self, body: bytes, first_part: bool = True) -> tuple[str, Any]:
+        """A frame's (kind, object); a reader's end ("done") recorded, its error raised."""
+        from db.citygml.names import CityGMLError
+
+        kind, obj = pickle.loads(body)
+        if kind == "done":
+            rss = obj[0]
+            self.peak_rss_mb = rss if self.peak_rss_mb is None else max(self.peak_rss_mb, rss)
+            self.reader_cpu_s.insert(0 if first_part else len(self.reader_cpu_s), obj[2])
+        elif kind == "error":
+            name, message, is_citygml = obj
+            if is_citygml:
+                raise CityGMLError(message)
+            raise RuntimeError(f"reading {self.path}: {name}: {message}")
+        return kind, obj
+
+    def _frame(self, read: Callable[[int], bytes | None], proc: subprocess.Popen[bytes]) -> tuple[str, Any]:
+        """The next frame of a reader through `read` (`_read_exactly` of its pipe)."""
+        from db.citygml.names import CityGMLError
+
+        head = read(LEN.size)
+        body = None if head is None else read(LEN.unpack(head)[0])
+        if body is None:
+            code = proc.wait(timeout=10)
+            raise CityGMLError(f"reader process died (exit code {code})", path=self.path)
+        return self._decode(body)
+
     def _frames(self, f: BinaryIO, proc: subprocess.Popen[bytes]) -> Iterator[tuple[str, Any]]:
         """The frames of one reader up to its end; returns ("done", (rss, count)) or ("unsplit", None)."""
         while True:
-            head = _read_exactly(f, _LEN.size)
-            body = None if head is None else _read_exactly(f, _LEN.unpack(head)[0])
-            if body is None:
-                code = proc.wait(timeout=10)
-                raise CityGMLError(f"reader process died (exit code {code})", path=self.path)
-            kind, obj = pickle.loads(body)
+            kind, obj = self._frame(partial(_read_exactly, f), proc)
             if kind in ("done", "unsplit"):
-                if kind == "done":
-                    rss = obj[0]
-                    self.peak_rss_mb = rss if self.peak_rss_mb is None else max(self.peak_rss_mb, rss)
-                    self.reader_cpu_s.append(obj[2])
                 return kind, obj
-            if kind == "error":
-                name, message, is_citygml = obj
-                if is_citygml:
-                    raise CityGMLError(message)
-                raise RuntimeError(f"reading {self.path}: {name}: {message}")
             yield kind, obj
 
+    def _spill_frame(self) -> tuple[str, Any] | None:
+        """The next frame the second reader has written completely into its file, None if there
+        is none yet (read with `pread`: the reader's file offset is left alone)."""
+        assert self._spill is not None
+        fd = self._spill.fileno()
+        size = os.fstat(fd).st_size
+        if size < self._spill_pos + LEN.size:
+            return None
+        (n,) = LEN.unpack(_pread_exactly(fd, LEN.size, self._spill_pos))
+        if size < self._spill_pos + LEN.size + n:
+            return None
+        body = _pread_exactly(fd, n, self._spill_pos + LEN.size)
+        self._spill_pos += LEN.size + n
+        return self._decode(body, first_part=False)
+
+    def _second_part(self, block: bool) -> tuple[str, Any] | None:
+        """The second reader's next frame: ("batch", obj), ("done", ...), or ("failed", exit code)
+        when it ended without finishing; None when it has none ready (`block`: wait for one)."""
+        second = self._procs[1]
+        while True:
+            fr = self._spill_frame()
+            if fr is not None:
+                return fr
+            code = second.poll()
+            if code is not None:  # it ended: anything it wrote before is in the file now
+                fr = self._spill_frame()
+                return fr if fr is not None else ("failed", code)
+            if not block:
+                return None
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                second.wait(timeout=0.01)
+
     def _split_batches(self) -> Iterator[tuple[str, Any]]:
-        """The batches of a split file, in the file's order (module docstring)."""
-        first, second = self._procs
+        """The batches of a split file (module docstring): the first part's as ("batch", obj) in
+        order, the second part's as ("batch2", obj) in order, written to the database whenever
+        the first reader has nothing ready (the first part's building count, `first_part_estimate`,
+        arrives first)."""
+        first = self._procs[0]
         assert first.stdout is not None and self._spill is not None
-        kind, info = yield from self._frames(first.stdout, first)
+        fd1 = first.stdout.fileno()  # read unbuffered, so that `poll` sees every byte not read yet
+        read1 = partial(_read_fd_exactly, fd1)
+        ready1 = select.poll()  # poll, not select: any descriptor number
+        ready1.register(fd1, select.POLLIN)
+        kind, obj = self._frame(read1, first)
         if kind == "unsplit":  # the first half is not independent: one reader for the whole file
             self.close()
             self.mode = "one"
@@ -347,22 +336,56 @@ class BatchStream:
             assert proc.stdout is not None
             yield from self._frames(proc.stdout, proc)
             return
-        code = second.wait()  # the first half is written: the second reader is done or nearly
-        if code != 0:  # _NEEDS_WHOLE_FILE, or it could not finish its file (e.g. a full disk)
+        if kind != "count":
+            raise RuntimeError(f"reading {self.path}: first reader began with {kind!r}")
+        self.first_part_estimate = obj
+        pending: tuple[str, Any] | None = None  # a frame of the second reader not yet passed on
+        second_state: str | None = None  # "done" or "failed" once the second reader has ended
+        sent2 = 0  # batches of the second part passed on
+        failed_code = 0
+        while True:
+            if pending is None and second_state is None:
+                pending = self._second_part(block=False)
+                if pending is not None and pending[0] in ("done", "failed"):
+                    second_state, failed_code, pending = pending[0], pending[1], None
+            # the first reader's frames first: it waits for us, the second one does not
+            if ready1.poll(0 if pending is not None else 20):
+                kind, obj = self._frame(read1, first)
+                if kind == "done":
+                    first_count = obj[1]
+                    break
+                yield kind, obj
+            elif pending is not None:
+                yield "batch2", pending[1]
+                sent2 += 1
+                pending = None
+        if pending is not None:
+            yield "batch2", pending[1]
+            sent2 += 1
+        while second_state is None:
+            fr = self._second_part(block=True)
+            assert fr is not None
+            if fr[0] in ("done", "failed"):
+                second_state, failed_code = fr[0], fr[1]
+            else:
+                yield "batch2", fr[1]
+                sent2 += 1
+        if second_state == "failed":
+            # a building without gml:id in the second part (`NEEDS_WHOLE_FILE`), or the reader could
+            # not finish its file: the rest from the whole file. Every batch it sent was full.
             self.mode = "then whole"
-            proc = self._spawn(subprocess.PIPE, skip=info[1])
+            proc = self._spawn(subprocess.PIPE, skip=first_count + sent2 * self.batch_size)
             assert proc.stdout is not None
-            yield from self._frames(proc.stdout, proc)
-            return
-        self._spill.seek(0)
-        kind, _ = yield from self._frames(self._spill, second)  # type: ignore[arg-type]
-        if kind != "done":
-            raise CityGMLError(f"second reader ended with {kind!r} (exit code {code})", path=self.path)
+            log.info("second reader ended with code %s: the rest read from the whole file", failed_code)
+            for kind, obj in self._frames(proc.stdout, proc):
+                yield ("batch2" if kind == "batch" else kind), obj
 
     def __iter__(self) -> Iterator[tuple[str, Any]]:
         if not self.parallel:
             self.mode = "one"
-            yield from _batches(self.path, self.huge_tree, self.batch_size, self.transform)
+            if self.transform is None:
+                raise ValueError("BatchStream: no transform given")
+            yield from batches(self.path, self.huge_tree, self.batch_size, self.transform)
             return
         self.start()
         try:
@@ -374,3 +397,27 @@ class BatchStream:
                 yield from self._frames(proc.stdout, proc)
         finally:
             self.close()
+
+
+def prestart(path: str | PathLike[str], options: ImportOptions | None = None) -> BatchStream | None:
+    """The reader processes of an import of `path` with `options`, started now, before the
+    transform is known (None when the file is read in the importing process, or cannot be
+    opened: the import reports that). A command line calls this before it loads the database
+    layer, so that the readers load their modules and parse meanwhile; hand the stream to
+    `db.importer.import_citygml(readers=...)`, which sends the transform, or close it."""
+    opts = options or ImportOptions()
+    p = Path(path)
+    try:
+        if not opts.reads_in_parallel(p):
+            return None
+    except OSError:
+        return None
+    return BatchStream(
+        p,
+        batch_size=opts.batch_size,
+        transform=None,
+        huge_tree=opts.huge_tree,
+        parallel=True,
+        split_above_bytes=opts.split_above_bytes,
+        split_at=opts.split_at,
+    ).spawn()

@@ -20,9 +20,14 @@ in place and usable throughout, and rows of other models are touched only by a r
 final step. Two imports of one name do not wait on each other: the second is refused
 (`ModelExistsError`). The COPY text of a batch (geometries as hex EWKB built in Python with
 numpy, planes, footprints, envelopes, checks: `db.import_rows`) is made where the file is read;
-for big files that is a separate reader process, or two, one per half (`db.import_stream`), so
-parsing overlaps with the database's work. Where the role may, the foreign keys of the copied
-rows (all pointing to rows of this import) are not checked row by row (`own_links_unchecked`).
+for big files that is a separate reader process, or two, one per part (`db.import_stream`), so
+parsing overlaps with the database's work; the readers start before anything else (before the
+database layer loads, when the command line starts them: `db.import_stream.prestart`), and the
+second part's batches are written whenever the first reader has none ready, numbered after the
+first part (`db.import_model.renumber` corrects them where its count, estimated from its bytes,
+was wrong). The model row's steps (start, finish, statistics) are in `db.import_model`.
+Where the role may, the foreign keys of the copied rows (all pointing to rows of this import)
+are not checked row by row (`own_links_unchecked`).
 Row ids are reserved from the sequences in one round trip per batch, so parents, roots, surfaces
 and texture targets are linked without further queries.
 
@@ -36,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -44,7 +48,6 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import psycopg
 from sqlalchemy import Connection, Engine, text
 from sqlalchemy.exc import IntegrityError
@@ -52,17 +55,15 @@ from sqlalchemy.exc import IntegrityError
 from db.appearance_images import store_appearance_images
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.citygml import reader as citygml_reader
-from db.errors import InputDataError, ModelExistsError
-from db.geomcodec import encode_envelope
+from db.errors import InputDataError
+from db.import_model import analyze, finish_model, renumber, start_model
+from db.import_options import ImportOptions
 from db.import_rows import BUILDING_TAIL, SURFACE_TAIL, BatchLines, batch_lines
 from db.import_signals import ImportInterrupted, Interrupts, abandon
 from db.import_stream import BatchStream
 from db.ops import (
-    IMPORT_MODEL_LOCK,
-    IMPORT_NAME_LOCK,
     copy_block,
     copy_rows,
-    delete_model,
     remove_dead_imports,
     reserve_ids,
     spatial_index_problems,
@@ -71,7 +72,6 @@ from db.session import as_engine
 from db.settings import Settings
 from db.srid import database_srid, model_epsg, to_database
 from workers.pipeline.geometry.citymodel import Appearance, ModelHeader
-from workers.pipeline.geometry.crs import UnknownCRSError, vertical_epsg
 
 __all__ = ["ImportInterrupted", "ImportOptions", "ImportProgress", "ImportSummary", "import_citygml"]
 
@@ -79,40 +79,6 @@ log = logging.getLogger(__name__)
 
 BUILDING_COLUMNS = ("id", "city_model_id", "parent_id", "root_id", "ordinal", *BUILDING_TAIL)
 SURFACE_COLUMNS = ("id", "city_model_id", "building_id", *SURFACE_TAIL)
-
-
-@dataclass(frozen=True)
-class ImportOptions:
-    """Options of `import_citygml`.
-
-    Attributes:
-        batch_size: top-level buildings per COPY batch (all batches share one transaction).
-        checks: geometry checks stored per surface: "fast" (vectorised over the batch: vertex
-            count, planarity, area, unclosed rings), "full" (`db.citygml.checks.check_building`,
-            adding self-intersection and outward wall normals; about 20 ms per building) or "none".
-        huge_tree: passed to the reader (lift libxml2 limits for unusual files).
-        parallel_read: parse the file in a separate reader process while this one writes (None:
-            for files larger than `parallel_above_bytes`).
-        split_above_bytes: a file read in parallel that is at least this large is parsed by two
-            reader processes, one per half (`db.import_stream`; the same rows in the same order);
-            None: always one reader process.
-        import_images: store the image files of the file's textures that lie in its folder.
-        crs: the CRS of the file's coordinates (e.g. `EPSG:25832`) when the file names none, or
-            to override what it names. The geometries are stored in the database SRID.
-        own_links_unchecked: skip the foreign-key checks of the copied rows (each links to a row
-            of this import, by ids it reserved; `session_replication_role = replica` until the
-            final step) where the role may and the schema has no trigger of its own.
-    """
-
-    batch_size: int = 250
-    checks: str = "fast"
-    huge_tree: bool = False
-    parallel_read: bool | None = None
-    parallel_above_bytes: int = 16 * 1024**2
-    split_above_bytes: int | None = 32 * 1024**2
-    import_images: bool = True
-    crs: str | None = None
-    own_links_unchecked: bool = True
 
 
 @dataclass(frozen=True)
@@ -163,17 +129,11 @@ def model_crs(path: Path, header: ModelHeader, crs: str | None, huge_tree: bool 
     return srs or "", model_epsg(srs, what=f"{path}")
 
 
-def _vertical(srs_name: str | None) -> int | None:
-    try:
-        return vertical_epsg(srs_name) if srs_name else None
-    except UnknownCRSError:
-        return None
-
-
 def _write_lines(
     conn: Connection, lines: BatchLines, model_id: int, ordinal0: int, image_dir: Path | None = None
-) -> None:
-    """Reserve ids, link parents/roots/owners and COPY one batch; then its appearances."""
+) -> list[int]:
+    """Reserve ids, link parents/roots/owners and COPY one batch; then its appearances. Returns
+    the building row ids."""
     bids = reserve_ids(conn, "building", len(lines.building_tails))
     sids = reserve_ids(conn, "surface", len(lines.surface_tails))
     m = str(model_id)
@@ -200,6 +160,7 @@ def _write_lines(
         app_ids = rows.write(conn, copy_rows, reserve_ids)
         if image_dir is not None:
             store_appearance_images(conn, app_ids, image_dir)
+    return bids
 
 
 def _may_skip_link_checks(conn: Connection) -> bool:
@@ -221,126 +182,6 @@ def _may_skip_link_checks(conn: Connection) -> bool:
     )
 
 
-def _start_model(
-    conn: Connection,
-    header: ModelHeader,
-    path: Path,
-    name: str,
-    srid: int,
-    replace: bool,
-    image_dir: Path | None = None,
-    skip_link_checks: bool = False,
-) -> tuple[int, bool]:
-    """Begin the import's transaction: take the name lock, create the `city_model` row. When a
-    model of that name exists (and `replace` is set) the new one is written under a temporary name
-    and takes over in `_finish_model`, so the old model stays as it is until the commit."""
-    free = conn.execute(
-        text("SELECT pg_try_advisory_xact_lock(:ns, hashtext(:n))"), {"ns": IMPORT_NAME_LOCK, "n": name}
-    ).scalar_one()
-    if not free:
-        raise ModelExistsError(f"city model {name!r} is being imported by another session")
-    # who we are for pg_stat_activity; the server notices a vanished client within a second
-    # (PostgreSQL 14+), even while a statement of ours runs or waits for a lock
-    conn.execute(
-        text(
-            "SELECT set_config('application_name', :app, true), "
-            "CASE WHEN current_setting('server_version_num')::int >= 140000 "
-            "THEN set_config('client_connection_check_interval', '1000', true) END"
-        ),
-        {"app": f"citytherm import {name}"[:63]},
-    )
-    if skip_link_checks:  # until `_finish_model`: the rows copied link only to rows of this import
-        conn.execute(text("SET LOCAL session_replication_role = replica"))
-    old = conn.execute(text("SELECT id FROM city_model WHERE name = :n"), {"n": name}).first()
-    replaced = old is not None
-    if replaced and not replace:
-        raise ModelExistsError(f"city model {name!r} exists already (import with replace to overwrite)")
-    model_id = conn.execute(
-        text(
-            "INSERT INTO city_model (name, srs_name, srid, vertical_epsg, citygml_version, gml_name, "
-            "source_file, building_count, part_count, surface_count, state) "
-            "VALUES (:name, :srs, :srid, :vert, :ver, :gname, :src, 0, 0, 0, 'importing') RETURNING id"
-        ),
-        {
-            "name": f"{name}#importing-{uuid.uuid4().hex}" if replaced else name,
-            "srs": header.srs_name,
-            "srid": srid,
-            "vert": _vertical(header.srs_name),
-            "ver": header.version,
-            "gname": header.name,
-            "src": str(path.resolve()),
-        },
-    ).scalar_one()
-    conn.execute(text("SELECT pg_advisory_xact_lock(:ns, :m)"), {"ns": IMPORT_MODEL_LOCK, "m": model_id})
-    if header.appearances:
-        rows = AppearanceRows()
-        collect_appearance_rows(
-            rows, header.appearances, model_id=model_id, building_row=None, surface_row={}
-        )
-        app_ids = rows.write(conn, copy_rows, reserve_ids)
-        if image_dir is not None:
-            store_appearance_images(conn, app_ids, image_dir)
-    return model_id, replaced
-
-
-def _finish_model(
-    conn: Connection,
-    model_id: int,
-    name: str,
-    counts: dict[str, int],
-    late: list[Appearance],
-    image_dir: Path | None = None,
-) -> None:
-    """Late appearances, cross-batch texture targets, counts, envelope; the model takes its name
-    (replacing an older model of that name in the same transaction); foreign keys act again."""
-    if conn.execute(text("SELECT current_setting('session_replication_role') <> 'origin'")).scalar_one():
-        conn.execute(text("SET LOCAL session_replication_role = origin"))
-    old = conn.execute(
-        text("SELECT id FROM city_model WHERE name = :n AND id <> :m FOR UPDATE"), {"n": name, "m": model_id}
-    ).first()
-    if old is not None:
-        delete_model(conn, old[0])
-    conn.execute(text("UPDATE city_model SET name = :n WHERE id = :m"), {"n": name, "m": model_id})
-    if late:
-        rows = AppearanceRows()
-        collect_appearance_rows(rows, late, model_id=model_id, building_row=None, surface_row={})
-        app_ids = rows.write(conn, copy_rows, reserve_ids)
-        if image_dir is not None:
-            store_appearance_images(conn, app_ids, image_dir)
-    # texture targets not resolved within their batch (CityModel-level appearances, cross-building)
-    conn.execute(
-        text(
-            "UPDATE texture_param tp SET surface_id = s.id FROM surface_data sd, appearance a, surface s "
-            "WHERE tp.surface_data_id = sd.id AND sd.appearance_id = a.id AND a.city_model_id = :m "
-            "AND tp.surface_id IS NULL AND s.city_model_id = :m AND s.gml_id = tp.target_gml_id"
-        ),
-        {"m": model_id},
-    )
-    box = conn.execute(
-        text(
-            "SELECT ST_XMin(e), ST_YMin(e), ST_ZMin(e), ST_XMax(e), ST_YMax(e), ST_ZMax(e), "
-            "Find_SRID(current_schema()::text, 'building', 'envelope') "
-            "FROM (SELECT ST_3DExtent(envelope) AS e FROM building "
-            "WHERE city_model_id = :m AND NOT is_part) x"
-        ),
-        {"m": model_id},
-    ).one()
-    envelope = None if box[0] is None else encode_envelope(np.array(box[:3]), np.array(box[3:6]), box[6])
-    conn.execute(
-        text(
-            "UPDATE city_model SET building_count = :b, part_count = :p, surface_count = :s, "
-            "state = 'complete', envelope = CAST(:env AS geometry) WHERE id = :m"
-        ),
-        {
-            "m": model_id,
-            "b": counts["buildings"],
-            "p": counts["parts"],
-            "s": counts["surfaces"],
-            "env": envelope,
-        },
-    )
-
-
 def import_citygml(
     db: Engine | Any,
     path: str | PathLike[str],
@@ -349,12 +190,16 @@ def import_citygml(
     replace: bool = False,
     options: ImportOptions | None = None,
     progress: Callable[[ImportProgress], None] | None = None,
+    readers: BatchStream | None = None,
 ) -> ImportSummary:
     """Import the CityGML file `path` as city model `name` (default: the file's stem), all or
     nothing (module docstring).
 
     `db` is an Engine, a sessionmaker bound to one, or a URL. `progress` is called after every
-    batch and at the final step. Raises `ModelExistsError` when the name exists and `replace` is
+    batch and at the final step. `readers`: the reader processes of this file started earlier
+    with the same options (`db.import_stream.prestart`, by a command line before it loads the
+    database layer); the import owns them from the call on (closes them whatever happens).
+    Raises `ModelExistsError` when the name exists and `replace` is
     false (or another session is importing that name), `CityGMLError` (from the reader) for a bad
     file, `InputDataError` for a file that cannot be one model (e.g. duplicate building ids),
     `ImportInterrupted` when SIGINT, SIGTERM or SIGHUP stopped it.
@@ -362,14 +207,47 @@ def import_citygml(
     opts = options or ImportOptions()
     path = Path(path)
     name = name or path.stem
-    if opts.checks not in ("fast", "full", "none"):
-        raise ValueError(f"ImportOptions.checks must be 'fast', 'full' or 'none', not {opts.checks!r}")
-    engine = as_engine(db)
     try:
-        return _import(engine, path, name, replace, opts, progress)
+        if opts.checks not in ("fast", "full", "none"):
+            raise ValueError(f"ImportOptions.checks must be 'fast', 'full' or 'none', not {opts.checks!r}")
+        if readers is not None and not _readers_fit(readers, path, opts):
+            readers.close()
+            readers = None
+        stream = readers or BatchStream(
+            path,
+            batch_size=opts.batch_size,
+            transform=None,
+            split_above_bytes=opts.split_above_bytes,
+            split_at=opts.split_at,
+            huge_tree=opts.huge_tree,
+            parallel=opts.reads_in_parallel(path) if path.is_file() else False,
+        )
+        # the readers load their modules and parse while the header is read and the database asked
+        stream.spawn()
+    except BaseException:
+        if readers is not None:
+            readers.close()
+        raise
+    engine = None
+    try:
+        engine = as_engine(db)
+        return _import(engine, path, name, replace, opts, progress, stream)
     finally:
-        if isinstance(db, str | Settings):  # an engine of our own: close its connections
+        stream.close()
+        if engine is not None and isinstance(db, str | Settings):  # an engine of our own: close it
             engine.dispose()
+
+
+def _readers_fit(readers: BatchStream, path: Path, opts: ImportOptions) -> bool:
+    """True when `readers` (started earlier) read `path` as `opts` would have them."""
+    return (
+        readers.path.resolve() == path.resolve()
+        and readers.batch_size == opts.batch_size
+        and readers.huge_tree == opts.huge_tree
+        and readers.split_above_bytes == opts.split_above_bytes
+        and readers.split_at == opts.split_at
+        and readers.transform is None
+    )
 
 
 def _import(
@@ -379,6 +257,7 @@ def _import(
     replace: bool,
     opts: ImportOptions,
     progress: Callable[[ImportProgress], None] | None,
+    stream: BatchStream,
 ) -> ImportSummary:
     t0 = time.perf_counter()
     header = citygml_reader.read_header(path, huge_tree=opts.huge_tree)
@@ -388,14 +267,13 @@ def _import(
         db_srid = database_srid(conn)
     to_db = to_database(srs_name, db_srid)
     image_dir = path.resolve().parent if opts.import_images else None
-    parallel = (
-        opts.parallel_read
-        if opts.parallel_read is not None
-        else path.stat().st_size > opts.parallel_above_bytes
-    )
     counts = {"buildings": 0, "parts": 0, "surfaces": 0, "appearances": len(header.appearances)}
     late: list[Appearance] = []
     ordinal = 0
+    # a split file's second part: its buildings' ordinals follow the first part's, whose count is
+    # estimated before its batches arrive (`BatchStream.first_part_estimate`) and checked at the end
+    ordinal2 = 0
+    second_ids: list[int] = []
     timings = {"wait_for_reader": 0.0, "write": 0.0}
 
     def report(stage: str) -> None:
@@ -406,20 +284,12 @@ def _import(
                 )
             )
 
-    stream = BatchStream(
-        path,
-        batch_size=opts.batch_size,
-        # an identity transform is left out: the reader process then never loads PROJ
-        transform=partial(
-            batch_lines, srid=db_srid, checks=opts.checks, to_db=None if to_db.identity else to_db
-        ),
-        split_above_bytes=opts.split_above_bytes,
-        huge_tree=opts.huge_tree,
-        parallel=parallel,
-    )
+    # an identity transform is left out: the reader process then never loads PROJ
+    to_db_or_none = None if to_db.identity else to_db
+    transform = partial(batch_lines, srid=db_srid, checks=opts.checks, to_db=to_db_or_none)
     with Interrupts() as interrupts, stream, engine.connect() as conn:
         try:
-            stream.start()  # the reader parses while the database is prepared
+            stream.start(transform)  # the readers parse while the database is prepared
             interrupts.conn = conn.connection.driver_connection
             dead = [d for d in remove_dead_imports(engine) if d.status == "removed"]
             for d in dead:
@@ -433,7 +303,7 @@ def _import(
                     problem,
                 )
             skip_checks = opts.own_links_unchecked and _may_skip_link_checks(conn)
-            model_id, replaced = _start_model(conn, header, path, name, srid, replace, image_dir, skip_checks)
+            model_id, replaced = start_model(conn, header, path, name, srid, replace, image_dir, skip_checks)
             timings["start"] = time.perf_counter() - t0
             t_wait = time.perf_counter()
             for kind, obj in stream:
@@ -443,9 +313,14 @@ def _import(
                     t_wait = time.perf_counter()
                     continue
                 t_write = time.perf_counter()
-                _write_lines(conn, obj, model_id, ordinal, image_dir=image_dir)
+                if kind == "batch2":  # second part of a split file, numbered after the first
+                    o0 = (stream.first_part_estimate or 0) + ordinal2
+                    second_ids += _write_lines(conn, obj, model_id, o0, image_dir=image_dir)
+                    ordinal2 += len(obj.building_tails)
+                else:
+                    _write_lines(conn, obj, model_id, ordinal, image_dir=image_dir)
+                    ordinal += len(obj.building_tails)
                 timings["write"] += time.perf_counter() - t_write
-                ordinal += len(obj.building_tails)
                 n_parts = sum(obj.is_part)
                 counts["buildings"] += len(obj.is_part) - n_parts
                 counts["parts"] += n_parts
@@ -453,10 +328,12 @@ def _import(
                 counts["appearances"] += sum(len(a) for _, a in obj.appearances)
                 report("writing")
                 t_wait = time.perf_counter()
+            if second_ids and ordinal != stream.first_part_estimate:
+                renumber(conn, second_ids, ordinal - (stream.first_part_estimate or 0))
             counts["appearances"] += len(late)
             report("finishing")
             t_fin = time.perf_counter()
-            _finish_model(conn, model_id, name, counts, late, image_dir=image_dir)
+            finish_model(conn, model_id, name, counts, late, image_dir=image_dir)
             t_commit = time.perf_counter()
             timings["finish"] = t_commit - t_fin
             # from the commit on a signal waits until the import is over: it must not report a
@@ -475,10 +352,7 @@ def _import(
             raise
     report("committed")
     t_an = time.perf_counter()
-    with engine.begin() as conn:
-        # planner statistics for the key columns (geometry statistics are slow to gather)
-        conn.exec_driver_sql("ANALYZE building (city_model_id, root_id, parent_id, is_part, ordinal)")
-        conn.exec_driver_sql("ANALYZE surface (city_model_id, building_id)")
+    analyze(engine)
     timings["analyze"] = time.perf_counter() - t_an
     return ImportSummary(
         model_id=model_id,

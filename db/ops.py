@@ -67,8 +67,11 @@ def reserve_ids(conn: Connection, table: str, n: int) -> list[int]:
     """Reserve `n` ids of `table`'s id sequence (one round trip; safe with concurrent inserts)."""
     if n == 0:
         return []
+    # the sequence is looked up once (an InitPlan), not per id: pg_get_serial_sequence scans the
+    # catalogs on every call
     ids = conn.exec_driver_sql(
-        f"SELECT array_agg(nextval(pg_get_serial_sequence('{table}', 'id'))) FROM generate_series(1, %(n)s)",
+        f"SELECT array_agg(nextval((SELECT pg_get_serial_sequence('{table}', 'id')::regclass))) "
+        "FROM generate_series(1, %(n)s)",
         {"n": n},
     ).scalar_one()
     return list(ids)

@@ -120,8 +120,20 @@ def import_cmd(
     """Import a CityGML file into the city model database (streamed; all or nothing: an error,
     Ctrl-C, SIGTERM or a killed process leaves nothing behind). Geometries are stored in the
     database SRID (transformed when the model's CRS is another; heights kept)."""
-    from db.errors import CityDBError
-    from db.importer import ImportInterrupted, ImportOptions, ImportProgress, import_citygml
+    from db.import_options import ImportOptions
+    from db.import_stream import prestart
+
+    options = ImportOptions(checks=checks, crs=crs)
+    # the reader processes of a large file start first: they load their modules and parse while
+    # this process loads the database layer (import_citygml owns and closes them)
+    readers = prestart(city_gml, options)
+    try:
+        from db.errors import CityDBError
+        from db.importer import ImportInterrupted, ImportProgress, import_citygml
+    except BaseException:
+        if readers is not None:
+            readers.close()
+        raise
 
     def show(p: ImportProgress) -> None:
         print(
@@ -137,8 +149,9 @@ def import_cmd(
             city_gml,
             name=name,
             replace=replace,
-            options=ImportOptions(checks=checks, crs=crs),
+            options=options,
             progress=show if progress else None,
+            readers=readers,
         )
     except ImportInterrupted as exc:
         err_console.print(f"[red]import stopped:[/red] {exc}")

@@ -386,6 +386,56 @@ def test_two_readers_and_unchecked_own_links_write_the_same_rows(db_engine) -> N
     assert _scalar(db_engine, orphans) == 0
 
 
+@pytest.mark.parametrize(
+    ("old", "new"),
+    [
+        # a value that looks like a building start tag: the first part's count is one too high
+        (b"<gen:value>1000</gen:value>", b"<gen:value>Building 1000</gen:value>"),
+        # a part without gml:id (its generated id does not count buildings): one too low
+        (b'<bldg:BuildingPart gml:id="', b"<bldg:BuildingPart>"),
+    ],
+    ids=["estimate-high", "estimate-low"],
+)
+def test_split_import_numbers_the_second_part_right_when_the_estimate_is_wrong(
+    db_engine, tmp_path, request, old, new
+) -> None:
+    """The second part's buildings are written while the first part is still being read,
+    numbered after the first part's count estimated from its bytes; where that estimate is wrong
+    the import renumbers them: the rows are those of one reader."""
+    from tests.conftest import replicated_nrw
+
+    src = replicated_nrw(tmp_path / "nrw-3.gml", 3).read_bytes()
+    k = src.index(old)
+    assert k < len(src) // 3  # in the first part
+    # the edit ends at the end of the start tag when it removes the part's attribute
+    end = src.index(b">", k) + 1 if new.endswith(b"Part>") else k + len(old)
+    path = tmp_path / "edited.gml"
+    path.write_bytes(src[:k] + new + src[end:])
+    case = request.node.callspec.id
+    one_opts = ImportOptions(parallel_read=False, batch_size=20)
+    one = import_citygml(db_engine, path, name=f"one-{case}", options=one_opts)
+    two = import_citygml(
+        db_engine,
+        path,
+        name=f"two-{case}",
+        options=ImportOptions(parallel_read=True, split_above_bytes=1, batch_size=20),
+    )
+    assert len(two.reader_cpu_s) == 2 and one.reader_cpu_s == ()
+    sql = (
+        "SELECT b.gml_id, b.ordinal, b.is_part, p.gml_id, r.gml_id, b.attributes, s.gml_id, s.ordinal "
+        "FROM surface s JOIN building b ON b.id = s.building_id JOIN building r ON r.id = b.root_id "
+        "LEFT JOIN building p ON p.id = b.parent_id WHERE s.city_model_id = :m ORDER BY b.ordinal, s.ordinal"
+    )
+    with db_engine.connect() as c:
+        rows = [c.execute(text(sql), {"m": m}).all() for m in (one.model_id, two.model_id)]
+        ordinals = c.execute(
+            text("SELECT array_agg(ordinal ORDER BY ordinal) FROM building WHERE city_model_id = :m"),
+            {"m": two.model_id},
+        ).scalar_one()
+    assert len(rows[0]) == one.surfaces and rows[1] == rows[0]
+    assert ordinals == list(range(one.buildings + one.parts))
+
+
 def test_foreign_keys_are_unchecked_only_where_allowed_and_no_trigger_is(db_engine, migrated_db) -> None:
     """`session_replication_role` is set only by a role that may (a superuser, or one granted SET
     on it) and only while the schema has no trigger of its own (replica mode would skip it)."""

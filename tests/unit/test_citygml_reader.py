@@ -378,3 +378,18 @@ def test_solid_member_through_reversed_orientable_surface(tmp_path: Path) -> Non
     for p in again.polygons:
         q = next(x for x in b.polygons if x.id == p.id)
         np.testing.assert_array_equal(p.exterior.coords, q.exterior.coords)
+
+
+def test_ncname_fast_check_agrees_with_the_pattern() -> None:
+    """`is_ncname` (a string-method check, then the pattern) says what the NCName pattern says."""
+    import random
+
+    from db.citygml.names import _NCNAME
+
+    cases = {"a-b.c_1": True, "_x": True, "-a": False, ".a": False, "1a": False, "é": False, "": False}
+    assert {c: is_ncname(c) for c in cases} == cases
+    rng = random.Random(7)
+    alphabet = "aZ_09.-:é \n#"
+    for _ in range(20000):
+        v = "".join(rng.choice(alphabet) for _ in range(rng.randint(0, 5)))
+        assert is_ncname(v) == bool(_NCNAME.match(v)), repr(v)

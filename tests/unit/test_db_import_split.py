@@ -30,23 +30,30 @@ def model(tmp_path_factory) -> Path:
 
 def _rows(path: Path, split: int | None, batch_size: int = 50) -> tuple[list[str], list[str], str | None]:
     """Building and surface COPY rows (local links made relative, so batch boundaries do not
-    matter) and how the stream read the file."""
+    matter) in the order the importer numbers them (the first part's "batch"es, then the second
+    part's "batch2"es, which may come in between), and how the stream read the file. The first
+    part's building count estimated from its bytes is checked against the buildings it gave."""
     transform = partial(batch_lines, srid=25832, checks="fast")
-    buildings: list[str] = []
-    surfaces: list[str] = []
+    buildings: dict[str, list[str]] = {"batch": [], "batch2": []}
+    surfaces: dict[str, list[str]] = {"batch": [], "batch2": []}
     with BatchStream(path, batch_size=batch_size, transform=transform, split_above_bytes=split) as s:
         for kind, obj in s:
-            assert kind == "batch"
+            assert kind == "batch" or (kind == "batch2" and split is not None)
             for i, (tail, parent, root) in enumerate(
                 zip(obj.building_tails, obj.parent, obj.root, strict=True)
             ):
-                buildings.append(f"{tail}|{parent - i if parent >= 0 else 1}|{root - i}")
-            surfaces += [
+                buildings[kind].append(f"{tail}|{parent - i if parent >= 0 else 1}|{root - i}")
+            surfaces[kind] += [
                 f"{t}|{obj.building_tails[o].split(chr(9))[0]}"
                 for t, o in zip(obj.surface_tails, obj.owner, strict=True)
             ]
         mode = s.mode
-    return buildings, surfaces, mode
+        if mode != "one":
+            assert s.first_part_estimate == len(buildings["batch"])
+            assert buildings["batch"] and (buildings["batch2"] or mode == "then whole")
+        else:
+            assert not buildings["batch2"]
+    return buildings["batch"] + buildings["batch2"], surfaces["batch"] + surfaces["batch2"], mode
 
 
 @pytest.fixture(scope="module")
