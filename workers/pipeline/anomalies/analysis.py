@@ -127,8 +127,10 @@ def analyse_surface(
     excess = np.where(observed, value - typical, np.nan).astype(np.float32)
 
     # the threshold rests on the spread at scales below `spread_scale_m` (noise and texture):
-    # gradients, seams and the leaks themselves do not raise it
-    thr = leak_threshold(residual, calm, size, o)
+    # gradients, seams and the leaks themselves do not raise it; its floor is a leak's ΔT as
+    # the imaging blur shows it (`floor_attenuation`)
+    floor = o.floor_k * floor_attenuation(texture, observed, o)
+    thr = leak_threshold(residual, calm, size, replace(o, floor_k=floor))
     # 3. leak candidates on the residual; over window panes against the pane's own level
     panes = observed & np.isfinite(scan.pane_level) & ~keep
     residual[panes] = value[panes] - scan.pane_level[panes]
@@ -198,6 +200,28 @@ def leak_threshold(residual: np.ndarray, calm: np.ndarray, size: float, o: Anoma
     if quiet.sum() < o.min_observed_texels:
         return thr
     return min(thr, max(o.k_mad * robust_stats(fine[quiet])[1], o.floor_k))
+
+
+def floor_attenuation(texture: SurfaceTexture, observed: np.ndarray, o: AnomalyOptions) -> float:
+    """Share 0-1 of a leak's ΔT that the texture shows at its peak for the smallest leak the
+    floor is meant for (a Gaussian of σ `floor_sigma_m`): `σ² / (σ² + b²)`, `b` the imaging
+    blur (`imaging_blur_m`, geometric mean of its axes) at the median resolution and viewing
+    angle of the `observed (H, W)` texels. The floor `floor_k` is a leak's ΔT; the blur
+    conserves a blob's volume and lowers its peak by that share, so the seed threshold's floor
+    is `floor_k` times it (with σ 0.45 m: about 0.7 on flights, 0.4-0.5 m/px, b ≈ 0.3 m;
+    0.98-1 on drives). 1 when `floor_sigma_m` or `psf_sigma_px` is 0 or the resolution is
+    unknown."""
+    if o.floor_sigma_m <= 0 or o.psf_sigma_px <= 0:
+        return 1.0
+    res = texture.resolution[observed]
+    res = res[np.isfinite(res)]
+    if len(res) == 0:
+        return 1.0
+    ang = texture.view_angle[observed]
+    ang = ang[np.isfinite(ang)]
+    bl, bs = imaging_blur_m(float(np.median(res)), float(np.median(ang)) if len(ang) else 0.0, o.psf_sigma_px)
+    s2 = o.floor_sigma_m**2
+    return s2 / (s2 + bl * bs)
 
 
 def regions_mask(regions: list[Region], kind: str, observed: np.ndarray) -> np.ndarray:
