@@ -127,8 +127,10 @@ def analyse_surface(
     excess = np.where(observed, value - typical, np.nan).astype(np.float32)
 
     # the threshold rests on the spread at scales below `spread_scale_m` (noise and texture):
-    # gradients, seams and the leaks themselves do not raise it
-    thr = leak_threshold(residual, calm, size, o)
+    # gradients, seams and the leaks themselves do not raise it; its floor is a leak's ΔT as
+    # the imaging blur shows it (`floor_attenuation`)
+    floor = o.floor_k * floor_attenuation(texture, observed, o)
+    thr = leak_threshold(residual, calm, size, replace(o, floor_k=floor))
     # 3. leak candidates on the residual; over window panes against the pane's own level
     panes = observed & np.isfinite(scan.pane_level) & ~keep
     residual[panes] = value[panes] - scan.pane_level[panes]
@@ -200,6 +202,28 @@ def leak_threshold(residual: np.ndarray, calm: np.ndarray, size: float, o: Anoma
     return min(thr, max(o.k_mad * robust_stats(fine[quiet])[1], o.floor_k))
 
 
+def floor_attenuation(texture: SurfaceTexture, observed: np.ndarray, o: AnomalyOptions) -> float:
+    """Share 0-1 of a leak's ΔT that the texture shows at its peak for the smallest leak the
+    floor is meant for (a Gaussian of σ `floor_sigma_m`): `σ² / sqrt((σ² + bl²)(σ² + bs²))`,
+    `bl`, `bs` the imaging blur along and across the footprint (`imaging_blur_m`) at the
+    median resolution and viewing angle of the `observed (H, W)` texels. The floor `floor_k`
+    is a leak's ΔT; the blur conserves a blob's volume and lowers its peak by that share, so
+    the seed threshold's floor is `floor_k` times it (with σ 0.45 m: about 0.7 on flights,
+    0.4-0.5 m/px; 0.98-1 on drives). 1 when `floor_sigma_m` or `psf_sigma_px` is 0 or the resolution is
+    unknown."""
+    if o.floor_sigma_m <= 0 or o.psf_sigma_px <= 0:
+        return 1.0
+    res = texture.resolution[observed]
+    res = res[np.isfinite(res)]
+    if len(res) == 0:
+        return 1.0
+    ang = texture.view_angle[observed]
+    ang = ang[np.isfinite(ang)]
+    bl, bs = imaging_blur_m(float(np.median(res)), float(np.median(ang)) if len(ang) else 0.0, o.psf_sigma_px)
+    s2 = o.floor_sigma_m**2
+    return s2 / math.sqrt((s2 + bl * bl) * (s2 + bs * bs))
+
+
 def regions_mask(regions: list[Region], kind: str, observed: np.ndarray) -> np.ndarray:
     """Union `(H, W)` of the masks of the regions of one kind, within `observed`."""
     m = np.zeros_like(observed)
@@ -267,7 +291,7 @@ def _region_anomaly(
         n = float(r.mask.sum())
         k = blur_gain(n * grid.size**2, b_long, b_short)
         sigma_obs = math.sqrt(n / math.pi) / HALF_MAX_RADIUS
-        blob = fit_blob(*fit_on, *r.centre_xy, sigma_obs, math.sqrt(b_long * b_short) / grid.size)
+        blob = fit_blob(*fit_on, *r.centre_xy, sigma_obs, b_long / grid.size, b_short / grid.size)
         if blob is not None and r.peak > 0:
             k = min(blob[0] / r.peak, BLUR_GAIN_CAP)
             centre_xy = np.array(blob[3:])

@@ -23,6 +23,12 @@ class AnomalyOptions:
             do not count).
         floor_k: absolute floor of that threshold: a texel is a seed when its excess exceeds
             `max(k_mad · fine spread, floor_k)`.
+        floor_sigma_m: the leak size (Gaussian σ, m; half-maximum diameter 2.35 σ) that
+            `floor_k` is meant for: the imaging blur lowers a leak's peak
+            (`analysis.floor_attenuation`: to about 0.7 on flights at 0.4-0.5 m/px, hardly on
+            drives), so the floor on the texture is `floor_k` times that share (0: the floor
+            applies to the texture as it is). Chosen among 0.3, 0.45 and 0.6 on the bench's
+            flights of two seeds (recall against false leaks; `docs/anomalies.md`).
         spread_scale_m: σ of the smoothing removed from the residual before the fine spread.
         min_area_m2: smallest half-maximum area of a reported leak.
         min_texels: smallest number of texels of a reported leak (coarse grids).
@@ -74,6 +80,7 @@ class AnomalyOptions:
     enabled: bool = True
     k_mad: float = 4.0
     floor_k: float = 1.2
+    floor_sigma_m: float = 0.45
     spread_scale_m: float = 0.6
     min_area_m2: float = 0.1
     min_texels: int = 2
@@ -116,6 +123,7 @@ class AnomalyOptions:
         )
         non_negative = (
             "floor_k",
+            "floor_sigma_m",
             "hot_delta_k",
             "window_margin_m",
             "edge_band_m",
