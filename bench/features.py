@@ -7,17 +7,25 @@ NRW LoD2 tile, ~9,500 buildings + parts, ~126,000 surfaces; `--copies 8` for a q
 into a fresh bench database, with one job's thermal statistics for every surface written in SQL
 (as `tests/integration/test_api_features.py` does): one facade feature per surface.
 
+Clients: threads, each with its own keep-alive connection of the standard library's
+`http.client` (`--client httpx`: httpx clients, as earlier versions of this bench; they cost
+1.3-1.9 ms CPU per request against 0.3 ms, on the cores the server and PostgreSQL share), each
+waiting for its response (checked: 200, `"numberReturned":100`) before its next request.
+
 Figures (JSON): per phase, requests, p50 / p95 / p99 / max latency (ms) and requests/s (also
 with one client: a request's cost without queueing), and the CPU ms per request of the server
-(its processes), of PostgreSQL (all its processes on the machine) and of the clients (this
-process): unlike latencies on a shared machine, these do not depend on the other load; the
+(its processes), of PostgreSQL (`postgres`: the backends connected to the bench database, i.e.
+the server's queries; `postgres_machine`: all its processes on the machine) and of the clients
+(this process): unlike latencies on a shared machine, these hardly depend on the other load; the
 single cold first-page request (its numberMatched counted; later first pages reuse the count for
 `COUNT_TTL_S` seconds, deep pages carry it in the cursor); the load average of the machine.
 Bar (issue 17): p95 < 100 ms at the first page and deep.
 
 Usage: `python bench/features.py [--copies 87] [--clients 20] [--requests 40] [--workers 2]
-[--pool-size N] [--db NAME] [--keep]` (`--db`: the bench database, dropped and created afresh;
-default `citytherm_bench_features`; `--pool-size`: the same app with a larger connection pool).
+[--pool-size N] [--db NAME] [--keep] [--reuse] [--client http.client|httpx]` (`--db`: the bench
+database, dropped and created afresh; default `citytherm_bench_features`; `--keep` leaves it,
+`--reuse` serves it again without importing; `--pool-size`: the same app with a larger
+connection pool).
 """
 
 from __future__ import annotations
