@@ -65,7 +65,11 @@ class Db:
         self._pg: psycopg.Connection = self._fairy.driver_connection  # type: ignore[assignment]
         self._autocommit = autocommit
         if autocommit:
-            self._pg.autocommit = True
+            try:
+                self._pg.autocommit = True
+            except BaseException:
+                self._fairy.close()
+                raise
 
     def rows(self, sql: str, binds: dict[str, Any] | None = None) -> list[tuple[Any, ...]]:
         """All rows of `sql` (`:name` binds from `binds`)."""
