@@ -7,17 +7,25 @@ NRW LoD2 tile, ~9,500 buildings + parts, ~126,000 surfaces; `--copies 8` for a q
 into a fresh bench database, with one job's thermal statistics for every surface written in SQL
 (as `tests/integration/test_api_features.py` does): one facade feature per surface.
 
+Clients: threads, each with its own keep-alive connection of the standard library's
+`http.client` (`--client httpx`: httpx clients, as earlier versions of this bench; they cost
+1.3-1.9 ms CPU per request against 0.3 ms, on the cores the server and PostgreSQL share), each
+waiting for its response (checked: 200, `"numberReturned":100`) before its next request.
+
 Figures (JSON): per phase, requests, p50 / p95 / p99 / max latency (ms) and requests/s (also
 with one client: a request's cost without queueing), and the CPU ms per request of the server
-(its processes), of PostgreSQL (all its processes on the machine) and of the clients (this
-process): unlike latencies on a shared machine, these do not depend on the other load; the
+(its processes), of PostgreSQL (`postgres`: the backends connected to the bench database, i.e.
+the server's queries; `postgres_machine`: all its processes on the machine) and of the clients
+(this process): unlike latencies on a shared machine, these hardly depend on the other load; the
 single cold first-page request (its numberMatched counted; later first pages reuse the count for
 `COUNT_TTL_S` seconds, deep pages carry it in the cursor); the load average of the machine.
 Bar (issue 17): p95 < 100 ms at the first page and deep.
 
 Usage: `python bench/features.py [--copies 87] [--clients 20] [--requests 40] [--workers 2]
-[--pool-size N] [--db NAME] [--keep]` (`--db`: the bench database, dropped and created afresh;
-default `citytherm_bench_features`; `--pool-size`: the same app with a larger connection pool).
+[--pool-size N] [--db NAME] [--keep] [--reuse] [--client http.client|httpx]` (`--db`: the bench
+database, dropped and created afresh; default `citytherm_bench_features`; `--keep` leaves it,
+`--reuse` serves it again without importing; `--pool-size`: the same app with a larger
+connection pool).
 """
 
 from __future__ import annotations
@@ -31,7 +39,9 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -146,10 +156,46 @@ def _auth(key: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {key}"} if key else {}
 
 
-def hammer(base: str, key: str | None, url: str, clients: int, requests: int) -> dict:
-    """`clients` threads, each with its own connection, GET `url` `requests` times; figures."""
+def _http_client_session(base: str, key: str | None) -> Callable[[str], tuple[int, bytes]]:
+    """A keep-alive connection of the standard library's `http.client` (C-parsed headers, little
+    Python per request): a function GET path -> (status, body)."""
+    import http.client
+    from urllib.parse import urlsplit
+
+    u = urlsplit(base)
+    conn = http.client.HTTPConnection(u.hostname, u.port, timeout=60)
+    headers = _auth(key)
+
+    def get(path: str) -> tuple[int, bytes]:
+        conn.request("GET", path, headers=headers)
+        r = conn.getresponse()
+        return r.status, r.read()
+
+    return get
+
+
+def _httpx_session(base: str, key: str | None) -> Callable[[str], tuple[int, bytes]]:
+    """A keep-alive `httpx.Client`: a function GET path -> (status, body)."""
     import httpx
 
+    c = httpx.Client(base_url=base, headers=_auth(key), timeout=60)
+
+    def get(path: str) -> tuple[int, bytes]:
+        r = c.get(path)
+        return r.status_code, r.content
+
+    return get
+
+
+CLIENTS = {"http.client": _http_client_session, "httpx": _httpx_session}
+
+
+def hammer(
+    base: str, key: str | None, url: str, clients: int, requests: int, kind: str = "http.client"
+) -> dict:
+    """`clients` threads, each with its own keep-alive connection (`kind`: "http.client", the
+    default, or "httpx"), GET `url` `requests` times; latency figures. Each response must be a
+    200 with `"numberReturned":100` in its body (else counted as an error)."""
     lat: list[float] = []
     errors: list[str] = []
     lock = threading.Lock()
@@ -157,16 +203,15 @@ def hammer(base: str, key: str | None, url: str, clients: int, requests: int) ->
 
     def client() -> None:
         mine: list[float] = []
-        with httpx.Client(base_url=base, headers=_auth(key), timeout=60) as c:
-            c.get("/conformance")  # connect before the clock starts
-            barrier.wait()
-            for _ in range(requests):
-                t0 = time.perf_counter()
-                r = c.get(url)
-                body = r.content
-                mine.append(time.perf_counter() - t0)
-                if r.status_code != 200 or b'"numberReturned":100' not in body:
-                    errors.append(f"{r.status_code} {body[:200]!r}")
+        get = CLIENTS[kind](base, key)
+        get("/conformance")  # connect before the clock starts
+        barrier.wait()
+        for _ in range(requests):
+            t0 = time.perf_counter()
+            status, body = get(url)
+            mine.append(time.perf_counter() - t0)
+            if status != 200 or b'"numberReturned":100' not in body:
+                errors.append(f"{status} {body[:200]!r}")
         with lock:
             lat.extend(mine)
 
@@ -217,9 +262,26 @@ def _processes() -> dict[int, tuple[int, str]]:
     return out
 
 
-def cpu_snapshot(server_pid: int) -> dict[str, float]:
-    """CPU seconds so far of the server (its process and descendants), of every PostgreSQL
-    process of the machine (other work's queries included) and of this process (the clients)."""
+def _bench_backends(url: str) -> list[int]:
+    """pids of the PostgreSQL backends connected to the bench database `url` (the server's
+    connection pools; not this query's own backend)."""
+    import psycopg
+
+    from db.session import psycopg_url
+
+    with psycopg.connect(psycopg_url(url), autocommit=True) as c:
+        rows = c.execute(
+            "SELECT pid FROM pg_stat_activity WHERE datname = current_database() "
+            "AND backend_type = 'client backend' AND pid <> pg_backend_pid()"
+        ).fetchall()
+    return [int(r[0]) for r in rows]
+
+
+def cpu_snapshot(server_pid: int, url: str) -> dict[str, Any]:
+    """CPU seconds so far of the server (its process and descendants), of each PostgreSQL
+    backend connected to the bench database (`postgres`: pid -> seconds; the work of the
+    server's queries, whoever else uses the machine), of every PostgreSQL process of the machine
+    (`postgres_machine`: other work's queries included) and of this process (the clients)."""
     procs = _processes()
     tree, todo = {server_pid}, [server_pid]
     while todo:
@@ -229,15 +291,23 @@ def cpu_snapshot(server_pid: int) -> dict[str, float]:
         todo += kids
     return {
         "server": sum(_cpu_s(p) for p in tree),
-        "postgres": sum(_cpu_s(p) for p, (_, name) in procs.items() if name == "postgres"),
+        "postgres": {p: _cpu_s(p) for p in _bench_backends(url)},
+        "postgres_machine": sum(_cpu_s(p) for p, (_, name) in procs.items() if name == "postgres"),
         "client": sum(os.times()[:2]),
     }
 
 
-def cpu_per_request(before: dict[str, float], after: dict[str, float], requests: int) -> dict[str, float]:
+def cpu_per_request(before: dict[str, Any], after: dict[str, Any], requests: int) -> dict[str, float]:
     """CPU ms per request of each party between two `cpu_snapshot`s (independent of the
-    machine's other load, unlike latencies)."""
-    return {k: round(1000 * (after[k] - before[k]) / max(requests, 1), 2) for k in before}
+    machine's other load, unlike latencies; but for `postgres_machine`). A bench backend that
+    appeared in between counts from its start; one that ended in between is missed (the pool
+    keeps its connections, so there are none in practice)."""
+    out: dict[str, float] = {}
+    for k, v in after.items():
+        pg = k == "postgres"
+        spent = sum(t - before[k].get(pid, 0.0) for pid, t in v.items()) if pg else v - before[k]
+        out[k] = round(1000 * spent / max(requests, 1), 2)
+    return out
 
 
 def deep_url(base: str, key: str | None, path: str, skip: int, limit: int) -> str:
@@ -262,17 +332,24 @@ def main() -> None:
     ap.add_argument("--deep", type=int, default=9_900, help="features before the deep page")
     ap.add_argument("--db", default="citytherm_bench_features", help="bench database (dropped, created)")
     ap.add_argument("--keep", action="store_true", help="keep the bench database")
+    ap.add_argument("--reuse", action="store_true", help="serve the bench database a --keep run left")
+    ap.add_argument("--client", choices=sorted(CLIENTS), default="http.client", help="clients' HTTP library")
     args = ap.parse_args()
 
     from citygml_io import make_replicated_model
     from db_io import _drop_database, _fresh_database
 
     tmp = tempfile.TemporaryDirectory(prefix="citytherm-featbench-")
-    big = make_replicated_model(NRW, Path(tmp.name) / "nrw-replicated.gml", args.copies)
-    url = _fresh_database(PG, args.db)
+    if args.reuse:
+        url = f"{PG.rstrip('/')}/{args.db}"
+        data = {"reused": args.db}
+    else:
+        big = make_replicated_model(NRW, Path(tmp.name) / "nrw-replicated.gml", args.copies)
+        url = _fresh_database(PG, args.db)
     proc = None
     try:
-        data = load(url, big)
+        if not args.reuse:
+            data = load(url, big)
         proc, base, key = start_server(url, args.workers, Path(tmp.name) / "serve.log", args.pool_size)
         import httpx
 
@@ -283,23 +360,25 @@ def main() -> None:
         cold_ms = round(1000 * (time.perf_counter() - t0), 1)
         matched = cold.json().get("numberMatched")
         deep = deep_url(base, key, path, args.deep, 100)
-        hammer(base, key, f"{path}?limit=100", args.clients, 5)  # warm-up: connections, plans
-        c0 = cpu_snapshot(proc.pid)
-        first = hammer(base, key, f"{path}?limit=100", args.clients, args.requests)
-        c1 = cpu_snapshot(proc.pid)
-        deep_fig = hammer(base, key, deep, args.clients, args.requests)
-        c2 = cpu_snapshot(proc.pid)
+        first_url, kind = f"{path}?limit=100", args.client
+        for u in (first_url, deep):  # warm-up: connections, plans
+            hammer(base, key, u, args.clients, 5, kind)
+        c0 = cpu_snapshot(proc.pid, url)
+        first = hammer(base, key, first_url, args.clients, args.requests, kind)
+        c1 = cpu_snapshot(proc.pid, url)
+        deep_fig = hammer(base, key, deep, args.clients, args.requests, kind)
+        c2 = cpu_snapshot(proc.pid, url)
         first["cpu_ms_per_request"] = cpu_per_request(c0, c1, first["requests"])
         deep_fig["cpu_ms_per_request"] = cpu_per_request(c1, c2, deep_fig["requests"])
         alone = {  # one client: the cost of a request without queueing
-            "first_page": hammer(base, key, f"{path}?limit=100", 1, args.requests),
-            f"after_{args.deep}": hammer(base, key, deep, 1, args.requests),
+            "first_page": hammer(base, key, first_url, 1, args.requests, kind),
+            f"after_{args.deep}": hammer(base, key, deep, 1, args.requests, kind),
         }
     finally:
         if proc is not None:
             proc.terminate()
             proc.wait(timeout=30)
-        if not args.keep:
+        if not (args.keep or args.reuse):
             _drop_database(PG, args.db)
     out = {
         "data": {"copies": args.copies, **data, "numberMatched": matched},
@@ -307,6 +386,7 @@ def main() -> None:
             "uvicorn_workers": args.workers,
             "db_pool_size": args.pool_size or "default (CITYTHERM_DATABASE_POOL_SIZE 20 + 10 overflow)",
             "clients": args.clients,
+            "client_library": args.client,
             "page": 100,
         },
         "cold_first_page_ms": cold_ms,

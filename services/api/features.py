@@ -25,11 +25,12 @@ from collections.abc import Iterator, Mapping
 from typing import Any
 from urllib.parse import urlencode
 
-from sqlalchemy import Connection, Engine, text
+from sqlalchemy import Engine
 
 from db.errors import NotFoundError
 from services.api import features_sql
 from services.api.features_collections import COLLECTIONS, Collection
+from services.api.features_db import Db
 from services.api.features_params import (
     CRS84,
     CRS84H,
@@ -102,9 +103,9 @@ def _collection_doc(c: Collection, base: str, srid: int, extent: dict[str, list[
 
 def collections_view(engine: Engine, *, base: str) -> dict[str, Any]:
     """`GET /collections`: every collection with its extent, CRS list and links."""
-    with engine.connect() as conn:
-        srid = features_sql.database_srid_cached(engine)
-        extent = features_sql.data_extent(conn, srid)
+    srid = features_sql.database_srid_cached(engine)
+    with Db(engine) as db:
+        extent = features_sql.data_extent(db, srid)
     return {
         "collections": [_collection_doc(c, base, srid, extent) for c in COLLECTIONS.values()],
         "links": [{"href": f"{base}/collections", "rel": "self", "type": "application/json"}],
@@ -115,9 +116,9 @@ def collections_view(engine: Engine, *, base: str) -> dict[str, Any]:
 def collection_view(engine: Engine, *, collection_id: str, base: str) -> dict[str, Any]:
     """`GET /collections/{id}` (`NotFoundError` for an unknown id)."""
     c = _collection(collection_id)
-    with engine.connect() as conn:
-        srid = features_sql.database_srid_cached(engine)
-        return _collection_doc(c, base, srid, features_sql.data_extent(conn, srid))
+    srid = features_sql.database_srid_cached(engine)
+    with Db(engine) as db:
+        return _collection_doc(c, base, srid, features_sql.data_extent(db, srid))
 
 
 # -- items -------------------------------------------------------------------------------------
@@ -150,41 +151,87 @@ def items_document(
     self_url: str,
 ) -> tuple[Iterator[bytes], Crs, bool]:
     """`GET /collections/{id}/items`: (the FeatureCollection as chunks of bytes, the output CRS,
-    whether to stream it). Raises `NotFoundError` (collection) and `FeatureParamError` (400)."""
+    whether to stream it). Raises `NotFoundError` (collection) and `FeatureParamError` (400).
+
+    A page of at most `STREAM_ABOVE` features is fetched at once (its features' JSON texts joined,
+    never parsed: one chunk); a larger forward page is streamed from a server-side cursor."""
     c = _collection(collection_id)
     srid = features_sql.database_srid_cached(engine)
     q = parse_items_query(params, c, srid)
     cur = q.cursor
     forward = cur is None or cur.forward
     stream = q.limit > STREAM_ABOVE and forward
-    conn = engine.connect()
+    db = Db(engine, autocommit=not stream)  # a server-side cursor needs a transaction
     try:
-        if not stream:  # no BEGIN / ROLLBACK round trips (a server-side cursor needs a transaction)
-            conn.execution_options(isolation_level="AUTOCOMMIT")
-        props = features_sql.properties(conn, c)
-        from_sql, where, binds = features_sql.where_clause(c, q, conn, srid)
+        props = features_sql.properties(db, c)
+        from_sql, where, binds = features_sql.where_clause(c, q, db, srid)
         matched = cur.matched if cur is not None and cur.query == q.fingerprint else None
         if matched is None:
-            matched = features_sql.count_matched(conn, c, q, from_sql, where, binds)
+            matched = features_sql.count_matched(db, c, q, from_sql, where, binds)
         if cur is not None:
             where = f"{where} AND {c.key} {'>' if forward else '<'} :cursor_key"
             binds["cursor_key"] = cur.key
-        sql = (
-            f"SELECT {features_sql.feature_select(c, props, q.crs)} FROM {from_sql}"
-            f"{features_sql.feature_lateral(props)} WHERE {where} "
-            f"ORDER BY {c.key} {'ASC' if forward else 'DESC'} LIMIT {q.limit + 1}"
-        )
-        options = {"yield_per": 500} if stream else {}
-        result = conn.execute(text(sql), binds, execution_options=options)
+        sql = features_sql.page_sql(c, props, q.crs, from_sql, where, forward, q.limit)
+        if stream:
+            return (
+                _chunks(db, db.stream(sql, binds), c, q, matched, base, path, params, self_url),
+                q.crs,
+                True,
+            )
+        rows = db.rows(sql, binds)  # in key order: ascending, or descending before the cursor
     except BaseException:
-        conn.close()
+        db.close()
         raise
-    return _chunks(conn, result, c, q, matched, base, path, params, self_url), q.crs, stream
+    db.close()
+    more = len(rows) > q.limit  # one row more than a page: more after (forward) or before it
+    rows = rows[: q.limit] if forward else rows[q.limit - 1 :: -1] if more else rows[::-1]
+    tail = _tail(
+        c, q, matched, base, path, params, self_url, len(rows),
+        rows[0][0] if rows else None, rows[-1][0] if rows else None,
+        more_after=more if forward else True,
+        more_before=cur is not None if forward else more,
+    )  # fmt: skip
+    head = b'{"type":"FeatureCollection","features":['
+    return iter([b"".join((head, ",".join([r[1] for r in rows]).encode(), tail))]), q.crs, False
+
+
+def _tail(
+    c: Collection,
+    q: ItemsQuery,
+    matched: int | None,
+    base: str,
+    path: str,
+    params: Mapping[str, list[str]],
+    self_url: str,
+    n: int,
+    first: Any,
+    last: Any,
+    *,
+    more_after: bool,
+    more_before: bool,
+) -> bytes:
+    """The end of a FeatureCollection after its features: `]`, numberReturned (`n`),
+    numberMatched, the links (`next` after the key `last` when `more_after`, `prev` before the key
+    `first` when `more_before`; keys as read, int or text), the legacy `crs` member, `}`."""
+    links = [_link(self_url, "self", "this page")]
+    key = str if c.key_kind == "uuid" else int
+    if more_after and last is not None:
+        nxt = Cursor(key(last), True, matched, q.fingerprint)
+        links.append(_link(_page_url(base, path, params, q.limit, nxt), "next", "next page"))
+    if more_before and first is not None:
+        prv = Cursor(key(first), False, matched, q.fingerprint)
+        links.append(_link(_page_url(base, path, params, q.limit, prv), "prev", "previous page"))
+    links.append({"href": f"{base}/collections/{c.id}", "rel": "collection", "type": "application/json"})
+    tail: dict[str, Any] = {"numberReturned": n}
+    if matched is not None:
+        tail["numberMatched"] = matched
+    tail["links"] = links
+    return ("]," + json.dumps(tail, separators=(",", ":"))[1:-1] + _legacy_crs(q.crs) + "}").encode()
 
 
 def _chunks(
-    conn: Connection,
-    result: Any,
+    db: Db,
+    result: Iterator[tuple],
     c: Collection,
     q: ItemsQuery,
     matched: int | None,
@@ -193,19 +240,13 @@ def _chunks(
     params: Mapping[str, list[str]],
     self_url: str,
 ) -> Iterator[bytes]:
-    """The FeatureCollection of `result`'s rows (the first `q.limit`), then its links; closes
-    `conn` at the end."""
+    """A streamed forward page: the FeatureCollection of `result`'s rows (key, feature JSON
+    text; the first `q.limit`), then its tail; closes `db` at the end."""
     try:
-        forward = q.cursor is None or q.cursor.forward
-        rows: Any = result if forward else list(result)[::-1]
-        if not forward and len(rows) > q.limit:  # one row more than a page: there are earlier ones
-            rows, more_before = rows[1:], True
-        else:
-            more_before = q.cursor is not None and forward
         yield b'{"type":"FeatureCollection","features":['
-        n, first, last, more_after = 0, None, None, not forward
+        n, first, last, more_after = 0, None, None, False
         buf: list[str] = []
-        for k, f in rows:
+        for k, f in result:
             if n == q.limit:
                 more_after = True
                 break
@@ -219,22 +260,12 @@ def _chunks(
                 buf = []
         if buf:
             yield ((",", "")[n == len(buf)] + ",".join(buf)).encode()
-        links = [_link(self_url, "self", "this page")]
-        key = str if c.key_kind == "uuid" else int
-        if more_after and last is not None:
-            nxt = Cursor(key(last), True, matched, q.fingerprint)
-            links.append(_link(_page_url(base, path, params, q.limit, nxt), "next", "next page"))
-        if more_before and first is not None:
-            prv = Cursor(key(first), False, matched, q.fingerprint)
-            links.append(_link(_page_url(base, path, params, q.limit, prv), "prev", "previous page"))
-        links.append({"href": f"{base}/collections/{c.id}", "rel": "collection", "type": "application/json"})
-        tail: dict[str, Any] = {"numberReturned": n}
-        if matched is not None:
-            tail["numberMatched"] = matched
-        tail["links"] = links
-        yield ("]," + json.dumps(tail, separators=(",", ":"))[1:-1] + _legacy_crs(q.crs) + "}").encode()
+        yield _tail(
+            c, q, matched, base, path, params, self_url, n, first, last,
+            more_after=more_after, more_before=q.cursor is not None,
+        )  # fmt: skip
     finally:
-        conn.close()
+        db.close()
 
 
 def item_document(
@@ -244,18 +275,16 @@ def item_document(
     `NotFoundError` for an unknown collection or feature."""
     c = _collection(collection_id)
     key = parse_item_id(c, feature_id)
-    with engine.connect() as conn:
-        srid = features_sql.database_srid_cached(engine)
-        out = parse_crs(crs, srid)
+    srid = features_sql.database_srid_cached(engine)
+    out = parse_crs(crs, srid)
+    with Db(engine) as db:
         from_sql = c.from_sql.format(**{s: "" for s in c.slots})
-        props = features_sql.properties(conn, c)
+        props = features_sql.properties(db, c)
         sql = (
             f"SELECT {features_sql.feature_select(c, props, out)} FROM {from_sql}"
             f"{features_sql.feature_lateral(props)} "
         )
-        row = conn.execute(
-            text(f"{sql} WHERE ({c.where}) AND {c.key} = :key"), {"key": key, "srid": srid}
-        ).first()
+        row = db.first(f"{sql} WHERE ({c.where}) AND {c.key} = :key", {"key": key, "srid": srid})
     if row is None:
         raise NotFoundError(f"collection {c.id!r} has no feature {feature_id[:200]!r}")
     href = f"{base}/collections/{c.id}/items/{row[0]}"

@@ -2,20 +2,23 @@
 JSON text by PostgreSQL), the filter and bbox conditions, numberMatched, the data's extent, and a
 small per-process cache (database SRID, optional columns, extents, counts).
 
-In: a `Collection`, a validated `ItemsQuery`, a connection. Out: SQL text and bind parameters.
+In: a `Collection`, a validated `ItemsQuery`, a `features_db.Db` (one request's connection).
+Out: SQL text and bind parameters.
 """
 
 from __future__ import annotations
 
+import functools
 import re
 import threading
 import time
 from typing import Any
 
-from sqlalchemy import Connection, Engine, text
+from sqlalchemy import Engine
 
 from db.srid import database_srid
-from services.api.features_collections import Collection
+from services.api.features_collections import COLLECTIONS, Collection
+from services.api.features_db import Db, engine_key
 from services.api.features_params import Crs, ItemsQuery
 
 __all__ = [
@@ -26,6 +29,7 @@ __all__ = [
     "database_srid_cached",
     "feature_lateral",
     "feature_select",
+    "page_sql",
     "properties",
     "where_clause",
 ]
@@ -60,48 +64,42 @@ class _Cache:
 _cache = _Cache()
 
 
-def _srid(conn: Connection) -> int:
-    """The database SRID (`db.srid.database_srid`), cached an hour per database URL."""
-    key = ("srid", str(conn.engine.url))
-    return _cache.get(key, 3600.0) or _cache.put(key, database_srid(conn))
-
-
 def database_srid_cached(engine: Engine) -> int:
-    """The database SRID (cached; a short connection the first time)."""
-    hit = _cache.get(("srid", str(engine.url)), 3600.0)
+    """The database SRID (`db.srid.database_srid`), cached an hour per database URL (a short
+    connection the first time)."""
+    key = ("srid", engine_key(engine))
+    hit = _cache.get(key, 3600.0)
     if hit is not None:
         return hit
     with engine.connect() as conn:
-        return _srid(conn)
+        return _cache.put(key, database_srid(conn))
 
 
-def properties(conn: Connection, c: Collection) -> tuple[tuple[str, str], ...]:
+def properties(db: Db, c: Collection) -> tuple[tuple[str, str], ...]:
     """The collection's properties, with its optional ones whose column exists."""
     if not c.optional:
         return c.properties
-    key = ("columns", str(conn.engine.url), c.id)
+    key = ("columns", db.key, c.id)
     have = _cache.get(key, _TTL_S)
     if have is None:
-        rows = conn.execute(
-            text(
-                "SELECT table_name, column_name FROM information_schema.columns "
-                "WHERE table_schema = current_schema() AND table_name = ANY(:t)"
-            ),
+        rows = db.rows(
+            "SELECT table_name, column_name FROM information_schema.columns "
+            "WHERE table_schema = current_schema() AND table_name = ANY(:t)",
             {"t": sorted({o[2] for o in c.optional})},
-        ).all()
+        )
         have = _cache.put(key, frozenset((r[0], r[1]) for r in rows))
     return c.properties + tuple((n, e) for n, e, t, col in c.optional if (t, col) in have)
 
 
-def data_extent(conn: Connection, srid: int) -> dict[str, list[float]] | None:
+def data_extent(db: Db, srid: int) -> dict[str, list[float]] | None:
     """Extent of the complete city models: `storage` (x0, y0, z0, x1, y1, z1, database SRID) and
     `crs84` (lon0, lat0, lon1, lat1); None without a model."""
-    key = ("extent", str(conn.engine.url))
+    key = ("extent", db.key)
     hit = _cache.get(key, _TTL_S)
     if hit is not None:
         return hit or None
-    row = conn.execute(
-        text(
+    row = db.first(
+        (
             "WITH x AS (SELECT ST_3DExtent(envelope) AS e FROM city_model WHERE state = 'complete'), "
             "g AS (SELECT e, ST_Transform(ST_Segmentize(ST_SetSRID(e::box2d::geometry, CAST(:s AS int)), "
             "GREATEST(ST_XMax(e) - ST_XMin(e), ST_YMax(e) - ST_YMin(e), 1) / 16), 4326) AS w "
@@ -110,7 +108,7 @@ def data_extent(conn: Connection, srid: int) -> dict[str, list[float]] | None:
             "ST_XMin(w), ST_YMin(w), ST_XMax(w), ST_YMax(w) FROM g"
         ),
         {"s": srid},
-    ).first()
+    )
     if row is None:
         _cache.put(key, {})
         return None
@@ -124,10 +122,10 @@ def feature_select(c: Collection, props: tuple[tuple[str, str], ...], crs: Crs) 
     by `row_to_json` (which looks up its column types once per query, where `json_build_object`
     does for every argument of every row: about a quarter of a page's CPU in PostgreSQL); the
     feature's frame is concatenated text."""
-    g = (
-        f"ST_AsGeoJSON(ST_Transform({c.geometry}, 4979), 9)"
+    g = (  # options 0: no `crs` member in each geometry (RFC 7946; the document says its CRS)
+        f"ST_AsGeoJSON(ST_Transform({c.geometry}, 4979), 9, 0)"
         if crs.geographic
-        else f"ST_AsGeoJSON({c.geometry}, 6)"
+        else f"ST_AsGeoJSON({c.geometry}, 6, 0)"
     )
     key_json = f"{c.key}::text" if c.key_kind == "int" else f"to_json({c.key}::text)::text"
     head, geometry, properties = (
@@ -154,9 +152,42 @@ def feature_lateral(props: tuple[tuple[str, str], ...]) -> str:
     return f", LATERAL (SELECT {cols}) AS {_PROPS}"
 
 
-def where_clause(
-    c: Collection, q: ItemsQuery, conn: Connection, srid: int
-) -> tuple[str, str, dict[str, Any]]:
+def page_sql(
+    c: Collection,
+    props: tuple[tuple[str, str], ...],
+    crs: Crs,
+    from_sql: str,
+    where: str,
+    forward: bool,
+    limit: int,
+) -> str:
+    """The SELECT of a page: (key, feature JSON text) of `limit + 1` features in key order
+    (`forward`: ascending, else descending; the one more tells whether there are more). Made
+    once per distinct page query (cached).
+
+    (Aggregating the page into one row in PostgreSQL, `string_agg` over a window, was tried: it
+    costs PostgreSQL more CPU than the rows cost psycopg to fetch, `docs/features.md`.)"""
+    return _page_sql(c.id, props, crs, from_sql, where, forward, limit)
+
+
+@functools.lru_cache(maxsize=1024)
+def _page_sql(
+    collection_id: str,
+    props: tuple[tuple[str, str], ...],
+    crs: Crs,
+    from_sql: str,
+    where: str,
+    forward: bool,
+    limit: int,
+) -> str:
+    c = COLLECTIONS[collection_id]
+    return (
+        f"SELECT {feature_select(c, props, crs)} FROM {from_sql}{feature_lateral(props)} "
+        f"WHERE {where} ORDER BY {c.key} {'ASC' if forward else 'DESC'} LIMIT {limit + 1}"
+    )
+
+
+def where_clause(c: Collection, q: ItemsQuery, db: Db, srid: int) -> tuple[str, str, dict[str, Any]]:
     """(FROM clause with its slots filled, WHERE condition, bind parameters) of the query's
     filters and bbox (not the cursor)."""
     params: dict[str, Any] = {"srid": srid}
@@ -170,12 +201,12 @@ def where_clause(
         if name in c.required:
             conds.append(c.required[name])
     if q.bbox is not None:
-        conds.append(_bbox_condition(c, q, conn, srid, params))
+        conds.append(_bbox_condition(c, q, db, srid, params))
     from_sql = c.from_sql.format(**{s: "".join(v) for s, v in slots.items()})
     return from_sql, " AND ".join(f"({x})" for x in conds), params
 
 
-def _bbox_condition(c: Collection, q: ItemsQuery, conn: Connection, srid: int, params: dict[str, Any]) -> str:
+def _bbox_condition(c: Collection, q: ItemsQuery, db: Db, srid: int, params: dict[str, Any]) -> str:
     """The bbox condition. In the database CRS: `ST_Intersects` with the box. In CRS84: the box,
     clipped to the data's extent (with a margin), transformed densified into the database SRID
     for the index (`&&`), then `ST_Intersects` of the geometry transformed to WGS 84 with the
@@ -185,7 +216,7 @@ def _bbox_condition(c: Collection, q: ItemsQuery, conn: Connection, srid: int, p
     x0, y0, x1, y1 = q.bbox
     box = "CAST(:bx0 AS float8), CAST(:by0 AS float8), CAST(:bx1 AS float8), CAST(:by1 AS float8)"
     if q.bbox_crs.geographic:
-        extent = data_extent(conn, srid)
+        extent = data_extent(db, srid)
         if not extent:
             return "FALSE"
         e0, f0, e1, f1 = extent["crs84"]
@@ -204,15 +235,15 @@ def _bbox_condition(c: Collection, q: ItemsQuery, conn: Connection, srid: int, p
 
 
 def count_matched(
-    conn: Connection, c: Collection, q: ItemsQuery, from_sql: str, where: str, params: dict
+    db: Db, c: Collection, q: ItemsQuery, from_sql: str, where: str, params: dict
 ) -> int | None:
     """numberMatched of the query (None above `COUNT_CAP`), kept `COUNT_TTL_S` seconds."""
-    key = ("count", str(conn.engine.url), q.fingerprint)
+    key = ("count", db.key, q.fingerprint)
     hit = _cache.get(key, COUNT_TTL_S)
     if hit is not None:
         return hit if hit >= 0 else None
-    n = conn.execute(
-        text(f"SELECT count(*) FROM (SELECT 1 FROM {from_sql} WHERE {where} LIMIT {COUNT_CAP}) x"), params
-    ).scalar_one()
+    sql = f"SELECT count(*) FROM (SELECT 1 FROM {from_sql} WHERE {where} LIMIT {COUNT_CAP}) x"
+    row = db.first(sql, params)
+    n = row[0] if row else 0
     _cache.put(key, -1 if n >= COUNT_CAP else int(n))
     return None if n >= COUNT_CAP else int(n)

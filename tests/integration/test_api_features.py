@@ -214,6 +214,54 @@ def test_paging_returns_each_facade_once(server: ApiServer, db_engine, data) -> 
         assert "limit=10000" in next(link["href"] for link in big["links"] if link["rel"] == "next")
 
 
+def test_paging_backwards_and_by_uuid(server: ApiServer, db_engine, data) -> None:
+    """`prev` links from the last page back to the first return every facade once (pages in
+    reverse order, each ascending), and the first page reached backwards has no `prev`; the
+    jobs collection (UUID keys) pages one feature at a time forward and back in key order."""
+    want = _ids(db_engine, f"SELECT st.id {FACADES_SQL} ORDER BY 1")
+    with server.client("read") as c:
+        doc = c.get("/collections/facades/items", params={"limit": 1000}).json()
+        while nxt := [link["href"] for link in doc["links"] if link["rel"] == "next"]:
+            doc = c.get(nxt[0]).json()
+        pages = [[f["id"] for f in doc["features"]]]
+        while prev := [link["href"] for link in doc["links"] if link["rel"] == "prev"]:
+            doc = c.get(prev[0]).json()
+            assert doc["numberReturned"] == len(doc["features"]) == 1000
+            assert doc["numberMatched"] == len(want)
+            assert any(link["rel"] == "next" for link in doc["links"])
+            pages.append([f["id"] for f in doc["features"]])
+        assert [i for page in reversed(pages) for i in page] == want
+        assert pages[-1] == want[:1000] and len(pages) == -(-len(want) // 1000)
+        # jobs: UUID keys, one per page
+        with db_engine.connect() as conn:
+            jobs = [
+                str(r[0])
+                for r in conn.execute(
+                    text("SELECT j.id FROM job j JOIN city_model cm ON cm.id = j.city_model_id "
+                         "AND cm.state = 'complete' ORDER BY j.id")
+                )
+            ]  # fmt: skip
+        assert len(jobs) >= NRW_JOBS + 1
+        doc = c.get("/collections/jobs/items", params={"limit": 1}).json()
+        forward = [doc["features"][0]["id"]]
+        while nxt := [link["href"] for link in doc["links"] if link["rel"] == "next"]:
+            doc = c.get(nxt[0]).json()
+            assert doc["numberReturned"] == 1 and doc["numberMatched"] == len(jobs)
+            forward.append(doc["features"][0]["id"])
+        backward = [doc["features"][0]["id"]]
+        while prev := [link["href"] for link in doc["links"] if link["rel"] == "prev"]:
+            doc = c.get(prev[0]).json()
+            backward.append(doc["features"][0]["id"])
+        assert forward == jobs and backward == jobs[::-1]
+        # RFC 7946 geometries (no crs member of their own); the storage CRS named once, at the top
+        for crs, legacy in ((None, None), (DB_CRS, f"urn:ogc:def:crs:EPSG::{TEST_SRID}")):
+            page = c.get("/collections/facades/items", params={"limit": 5, **({"crs": crs} if crs else {})})
+            body = page.json()
+            geometries = [f["geometry"] for f in body["features"]]
+            assert len(geometries) == 5 and all("crs" not in g and g["type"] == "Polygon" for g in geometries)
+            assert body.get("crs", {}).get("properties", {}).get("name") == legacy
+
+
 def test_bbox_and_crs(server: ApiServer, db_engine, data) -> None:
     with db_engine.connect() as c:
         x0, y0, x1, y1 = c.execute(
