@@ -10,8 +10,9 @@ same result as one after the other.
 
 A task pickles without its ray caster (an Open3D scene, not picklable): it carries the scene mesh
 and rebuilds the caster once per process and plan (`WindowTask.scene`), keyed by the plan's
-`scene_key`. In the process that planned it the caster and the scene wireframe are the planner's
-own objects.
+`scene_key`; it carries the planner's scene wireframe (plain arrays, a pure function of the mesh
+and the edge options: remaking it took about 7 % of a window's time). In the process that planned
+it the caster and the scene wireframe are the planner's own objects.
 """
 
 from __future__ import annotations
@@ -90,7 +91,8 @@ class WindowTask:
         options: the sequence options as the window runs them (the noisy-prior variant included).
         scene_key: identifies the plan's scene mesh (the per-process caster cache key).
         mesh: the buildings near the cameras (model CRS, local origin).
-        caster, wireframe: the planner's ray caster over `mesh` and its wireframe; not pickled.
+        caster, wireframe: the planner's ray caster over `mesh` (not pickled) and the scene
+            wireframe (pickled with the task).
     """
 
     index: int
@@ -107,9 +109,9 @@ class WindowTask:
     wireframe: Wireframe | None = field(default=None, repr=False)
 
     def __getstate__(self) -> dict[str, Any]:
-        """Pickled without the ray caster and wireframe (rebuilt from `mesh` where it runs)."""
+        """Pickled without the ray caster (rebuilt from `mesh` where it runs)."""
         state = dict(self.__dict__)
-        state["caster"] = state["wireframe"] = None
+        state["caster"] = None
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -117,12 +119,15 @@ class WindowTask:
 
     def scene(self) -> tuple[RayCaster, Wireframe]:
         """The ray caster over `mesh` and its wireframe: the planner's, else built once per
-        process and plan."""
+        process and plan (the wireframe: the one the task carries, else made from `mesh`)."""
         if self.caster is not None and self.wireframe is not None:
             return self.caster, self.wireframe
         if not _SCENE or _SCENE[0][0] != self.scene_key:
             caster = RayCaster(self.mesh)
-            _SCENE[:] = [(self.scene_key, caster, mesh_wireframe(self.mesh, self.options.coregister.edges))]
+            wf = self.wireframe
+            if wf is None:
+                wf = mesh_wireframe(self.mesh, self.options.coregister.edges)
+            _SCENE[:] = [(self.scene_key, caster, wf)]
         return _SCENE[0][1], _SCENE[0][2]
 
 
