@@ -6,7 +6,9 @@ In: ids (job uuid as a string, building gml id, model import id), the settings o
 
 - `prepare_job`: the stages of `citytherm run` before the units (`workers.job`: ingest over the
   model's buildings from PostGIS, calibrate, orient with its windows as tasks
-  (`workers.service_windows`), plan); one pickled `BuildingUnit` per
+  (`workers.service_windows`), plan; the plan rests on the calibrated priors alone, so when the
+  task waits for windows other workers orient it plans then and gives each unit its part of
+  the orientation afterwards, `with_sequence`: the same units); one pickled `BuildingUnit` per
   building (`jobs/<id>/units/<name>.pkl`), what `finish` needs (`prepared.pkl`) and the
   manifest-only priors (`priors.pkl`, frame index -> `Pose`, for `frame_pose`); then one
   `job_unit` per building with the id of the task queued for it, and the tasks, the costliest
@@ -145,6 +147,17 @@ def _stage(job_id: uuid.UUID, stage: str) -> None:
         s.commit()
 
 
+def with_sequence(planned: Planned, oriented: Oriented) -> Planned:
+    """`planned` (the plan stage without the sequence orientation: it plans from the calibrated
+    priors alone) with each unit's part of `oriented` (`SequenceOrientation.for_frames`): what
+    `plan` with `oriented` gives."""
+    so = oriented.orientation
+    if so is None:
+        return planned
+    units = tuple(replace(u, sequence=so.for_frames(u.frames)) for u in planned.units)
+    return Planned(units, planned.warning)
+
+
 def _run_stages(job: jobs.JobRecord) -> tuple[Prepared, tuple[Any, ...], dict[int, Pose]]:
     """ingest, calibrate, orient, plan for `job` (as `workers.run.run_job` runs them)."""
     options = RunOptions.from_dict(job.options)
@@ -189,13 +202,22 @@ def _run_stages(job: jobs.JobRecord) -> tuple[Prepared, tuple[Any, ...], dict[in
         calibrated = calibrate(ingested, options)
     _stage(job.id, "orient")
     t0 = time.perf_counter()
-    oriented = orient(ingested, calibrated, options, caster=caster, map_windows=celery_window_map(job.id))
+    early: list[tuple[Planned, float]] = []  # planned while other workers orient windows (s)
+
+    def plan_early() -> None:
+        t = time.perf_counter()
+        without = plan(ingested, calibrated, Oriented(None, {"run": False}), options)
+        early.append((without, time.perf_counter() - t))
+
+    windows = celery_window_map(job.id, idle=plan_early)
+    oriented = orient(ingested, calibrated, options, caster=caster, map_windows=windows)
+    planning = early[0][1] if early else 0.0
     if oriented.report.get("run"):
-        timings["orient"] = time.perf_counter() - t0
+        timings["orient"] = time.perf_counter() - t0 - planning
     _stage(job.id, "plan")
     t0 = time.perf_counter()
-    planned = plan(ingested, calibrated, oriented, options)
-    timings["plan"] = time.perf_counter() - t0
+    planned = with_sequence(early[0][0], oriented) if early else plan(ingested, calibrated, oriented, options)
+    timings["plan"] = planning + time.perf_counter() - t0
     light = Planned(tuple(replace(u, occluders=(), sequence=None) for u in planned.units), planned.warning)
     kept = Prepared(ingested, calibrated, Oriented(None, oriented.report), light, timings, str(seq.name))
     priors = {f.index: p for f, p in zip(ingested.manifest.frames, ingested.priors, strict=True)}

@@ -87,11 +87,14 @@ def _take(
     return done
 
 
-def celery_window_map(job_id: uuid.UUID, poll_s: float = POLL_S) -> WindowMap:
+def celery_window_map(
+    job_id: uuid.UUID, poll_s: float = POLL_S, idle: Callable[[], None] | None = None
+) -> WindowMap:
     """The prepare task's `map_windows` for job `job_id` (module docstring): results in window
     order, once all are there. A single window runs here without tasks. The window files are
     removed when the results have been read (or a window raised here: the orient stage fails as
-    in `citytherm run`)."""
+    in `citytherm run`). `idle` is called once, the first time this process has no window left
+    to take and waits for windows other workers hold (the prepare task plans its units then)."""
 
     def run(
         function: Callable[[WindowTask], WindowResult], items: Iterable[WindowTask]
@@ -106,13 +109,18 @@ def celery_window_map(job_id: uuid.UUID, poll_s: float = POLL_S) -> WindowMap:
             if not _result_path(job_id, t.index).exists():
                 send("citytherm.orient_window", str(job_id), t.index)
         results: dict[int, WindowResult] = {}
+        waiting = idle
         try:
             while len(results) < len(tasks):
                 for t in tasks:
                     if t.index not in results and (r := _take(job_id, t, function)) is not None:
                         results[t.index] = r
                 if len(results) < len(tasks):
-                    time.sleep(poll_s)
+                    if waiting is not None:
+                        waiting, call = None, waiting
+                        call()
+                    else:
+                        time.sleep(poll_s)
         finally:  # merged, or the stage failed: window tasks still queued find nothing to do
             shutil.rmtree(windows_dir(job_id), ignore_errors=True)
         for t in tasks:

@@ -1,6 +1,7 @@
 """The order in which the prepare task queues a job's building units (`service_job.dispatch_order`):
 costliest first by `unit_cost` (texels of the building's surfaces, frames), plan order among
-equals; and the polygon area it rests on."""
+equals; the polygon area it rests on; and the plan made while other workers orient windows
+(`service_job.with_sequence`)."""
 
 from __future__ import annotations
 
@@ -88,3 +89,50 @@ def test_resolution_of_the_unit_options_scales_the_texel_term() -> None:
     twenty = SimpleNamespace(texel=SimpleNamespace(resolution_px_per_m=20.0))
     fine = StandInUnit(coarse.building, (), twenty)  # type: ignore[arg-type]
     assert sj.unit_cost(fine) == pytest.approx(4 * sj.unit_cost(coarse))  # type: ignore[arg-type]
+
+
+def test_planned_before_the_orientation_then_given_it_equals_the_plan_with_it() -> None:
+    """The prepare task plans while other workers orient windows (`service_job.with_sequence`):
+    the same units as `workers.job.plan` with the orientation."""
+    from pathlib import Path
+
+    from workers import job
+    from workers.pipeline.geometry.citymodel import ModelHeader
+    from workers.pipeline.geometry.manifest import MemoryFrames
+    from workers.pipeline.geometry.pose import Pose
+    from workers.pipeline.orientation.sequence import SequenceOrientation
+    from workers.pipeline.orientation.tracks import Tracks
+    from workers.pipeline.synth import SynthOptions, procedural_block, synthesize
+
+    drive = SynthOptions(platform="drive", n_frames=12, seed=1, buildings=2)
+    res = synthesize(procedural_block(4, seed=1), drive)
+    m, priors, blds = res.manifest, tuple(res.truth.poses), tuple(res.buildings)
+    ing = job.Ingested(Path("<synthetic>"), Path("<memory>"), ModelHeader("2.0"), m,
+                       MemoryFrames({}), priors, blds, len(blds), m.radiometry)  # fmt: skip
+    cal = job.Calibrated(None, priors, m.accuracy)
+    rng = np.random.default_rng(2)
+    oriented_frames = range(0, 12, 2)  # a stand-in orientation of every other frame
+    so = SequenceOrientation(
+        poses={f: Pose(p.R_world_from_cam, p.center + rng.normal(0, 0.1, 3)) if f in oriented_frames else p
+               for f, p in enumerate(priors)},
+        covariance={f: np.eye(6) * (1e-4 + f) for f in oriented_frames},
+        blocks=[], tracks=Tracks.empty(), ties=dict.fromkeys(oriented_frames, 30),
+        tie_rms_px=dict.fromkeys(oriented_frames, 0.4),
+    )  # fmt: skip
+    options = job.RunOptions()
+    direct = job.plan(ing, cal, job.Oriented(so, {"run": True}), options)
+    early = sj.with_sequence(job.plan(ing, cal, job.Oriented(None, {"run": False}), options),
+                             job.Oriented(so, {"run": True}))  # fmt: skip
+    assert len(direct.units) >= 2 and direct.warning == early.warning
+    for a, b in zip(direct.units, early.units, strict=True):
+        assert (a.building.id, a.frames, a.times) == (b.building.id, b.frames, b.times)
+        assert [o.id for o in a.occluders] == [o.id for o in b.occluders]
+        assert a.sequence is not None and b.sequence is not None
+        assert a.sequence.poses.keys() == b.sequence.poses.keys() and a.sequence.poses
+        for f in a.sequence.poses:
+            assert np.array_equal(a.sequence.poses[f].center, b.sequence.poses[f].center)
+            assert np.array_equal(a.sequence.covariance[f], b.sequence.covariance[f])
+        assert (a.sequence.ties, a.sequence.tie_rms_px) == (b.sequence.ties, b.sequence.tie_rms_px)
+    # no orientation (the stage did not run or failed): the early plan as it is
+    none = job.plan(ing, cal, job.Oriented(None, {"run": False}), options)
+    assert sj.with_sequence(none, job.Oriented(None, {"run": False})) is none
