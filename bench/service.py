@@ -26,7 +26,10 @@ cluster of 8 buildings, which the plan turns into ~20-25 building units. Prints 
    (`by_stage_seen`, with the cores busy on average). The workers are warmed up first
    (`warm_up`: small jobs, so that each pool process has imported Open3D and cv2, which the
    pipeline imports on first use, as long-running workers have; `--cold` skips that), and
-   `speedup_bound_units_halved` is the 1-worker job with its units phase halved (Amdahl).
+   `speedup_bound_units_halved` is the 1-worker job with its units phase halved (Amdahl). Per job
+   `timeline` (`bench/service_timeline.py`): which worker process ran which task when (from the
+   workers' `task-span` / `window-span` log lines), drawn one row per process, and the speed-up
+   its tasks' CPU seconds allow on 2 workers (`speedup_from_cpu`: less skewed by other load).
 2. `poll`: `GET /jobs/{id}` latency with 50 concurrent pollers (threads, one `httpx.Client` each,
    40 requests each) while a job runs on 2 workers: `paced` (each poller asks every
    `--poll-interval` s, default 1 s, as a polling client does; bar p95 < 50 ms), then `unpaced`
@@ -79,6 +82,7 @@ from bench.service_stack import (
     tree_peak_rss_mb,
     wait_for,
 )
+from bench.service_timeline import timeline
 from bench.service_uploads import upload_model, upload_package, upload_throughput
 
 
@@ -214,12 +218,15 @@ def service_job(stack: Stack, inputs: dict) -> dict:
     load0 = load()
     stages = StageCpu(stack)
     with stack.client() as c:
+        t_unix = time.time()
         job, t0 = submit(c, inputs)
         status = until_results(c, job, seen=stages.sample)
         wall = time.perf_counter() - t0
     stages.sample(None)
     cpu = cpu_delta(cpu0, tree_cpu_s(stack.pids()))
+    logs = {name: stack.log(name) for name in stack.procs if name.startswith("w")}
     return {
+        "timeline": timeline(logs, job, t_unix, workers=2),
         "job": job,
         "wall_s": round(wall, 2),
         "progress": status["progress"],
@@ -452,6 +459,8 @@ def main() -> None:
             "two_workers": two,
         }
         out["speedup"] = round(one["wall_s"] / two["wall_s"], 3)
+        out["speedup_from_cpu"] = {k: j["timeline"]["speedup_from_cpu"] for k, j in (("one_worker", one),
+                                   ("two_workers", two))}  # fmt: skip
         # Amdahl: the 1-worker job with its units phase halved and everything else as it was
         half = one["wall_s"] - one["timeline_s"]["units_span"] / 2
         out["speedup_bound_units_halved"] = round(one["wall_s"] / half, 3)

@@ -44,6 +44,7 @@ from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster, build_scene_mesh
 from workers.pipeline.orientation.building import calibrated_options
 from workers.pipeline.orientation.calibration import (
+    CalibrationOptions,
     SequenceCalibration,
     apply_calibration,
     calibrate_sequence,
@@ -53,9 +54,11 @@ from workers.pipeline.orientation.mounting import calibration_report, mounting_d
 from workers.pipeline.orientation.sequence import (
     SEQUENCE_PLATFORMS,
     SequenceOrientation,
+    SequenceOrientationOptions,
     WindowMap,
     orient_sequence,
 )
+from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe, WireframeError, mesh_wireframe
 from workers.pipeline.plan import near_buildings, plan_units, resolution_warning
 from workers.pipeline.reconstruction.combine import with_reconstruction
 from workers.pipeline.results import BuildingResult, output_radiometry
@@ -242,6 +245,24 @@ def scene_caster(ingested: Ingested) -> RayCaster | None:
     return RayCaster(build_scene_mesh(ingested.buildings)) if ingested.buildings else None
 
 
+#: the last scene wireframe made here: `(caster, edge options, wireframe)`
+_WIREFRAME: list[tuple[RayCaster, EdgeOptions, Wireframe]] = []
+
+
+def scene_wireframe(caster: RayCaster, edges: EdgeOptions) -> Wireframe | None:
+    """`mesh_wireframe(caster.mesh, edges)` (None when the scene has none), made once per caster:
+    the calibrate and orient stages of one process share the caster (`scene_caster`) and, with
+    equal edge options, its wireframe (a pure function of the two; about 5 % of each stage)."""
+    if _WIREFRAME and _WIREFRAME[0][0] is caster and _WIREFRAME[0][1] == edges:
+        return _WIREFRAME[0][2]
+    try:
+        wf = mesh_wireframe(caster.mesh, edges)
+    except WireframeError:
+        return None
+    _WIREFRAME[:] = [(caster, edges, wf)]
+    return wf
+
+
 def calibrate(ingested: Ingested, options: RunOptions, caster: RayCaster | None = None) -> Calibrated:
     """The calibrate stage: `calibrate_sequence` over every frame against the buildings near the
     cameras (`caster`: a ray caster over them, built here when None).
@@ -259,6 +280,7 @@ def calibrate(ingested: Ingested, options: RunOptions, caster: RayCaster | None 
     else:
         try:
             caster = caster if caster is not None else scene_caster(ingested)
+            wf = scene_wireframe(caster, CalibrationOptions().edges) if caster is not None else None
             cal = calibrate_sequence(
                 m.camera,
                 caster,
@@ -267,6 +289,7 @@ def calibrate(ingested: Ingested, options: RunOptions, caster: RayCaster | None 
                 dict(zip(frames, ingested.priors, strict=True)),
                 dict(zip(frames, times, strict=True)),
                 m.accuracy,
+                wireframe=wf,
             )
         except Exception as exc:  # reported in report.json: the job goes on
             cal = SequenceCalibration(theta=np.zeros(10), reason=f"failed: {type(exc).__name__}: {exc}")
@@ -305,10 +328,11 @@ def orient(
         prior = dict(zip(frames, calibrated.priors, strict=True))
         so = None  # `sfm`: the reconstruction alone
         if options.orientation != "sfm":
+            wf = scene_wireframe(caster, SequenceOrientationOptions().coregister.edges) if caster else None
             so = orient_sequence(
                 ingested.manifest.camera, caster, frames, ingested.frames, prior, times, calibrated.accuracy,
                 progress=lambda done, total: progress("orient", done, total),
-                map_windows=map_windows or pool_map(options.workers),
+                map_windows=map_windows or pool_map(options.workers), wireframe=wf,
             )
         so, method = with_reconstruction(  # `RunOptions.orientation`: edges, sfm or both
             options.orientation, so, ingested.manifest.camera, caster, frames, ingested.frames, prior, times,

@@ -6,22 +6,26 @@ directory and PostGIS (advisory locks). Out: one `WindowResult` per window, merg
 task as `citytherm run` merges them (`sequence.merge_windows`).
 
 How (`celery_window_map`, the prepare task's `map_windows`): the prepare task writes every window
-task to `jobs/<id>/windows/<k>.task.pkl` and queues `citytherm.orient_window(job id, k)` for
-each (ids only); then it works through the windows itself, in order, taking every window no other
-worker holds, and waits for the others. Whoever runs window k holds the session-level advisory
-lock `citytherm-window-<k>:<job id>` (`service_process.job_lock`) and writes
+task to `jobs/<id>/windows/<k>.task.pkl` and queues `citytherm.orient_window(job id, k)` for each
+(ids only); then it works through the windows itself, in order, taking every window no other worker
+holds, and waits for the others. Whoever runs window k holds the session-level advisory lock
+`citytherm-window-<k>:<job id>` (`service_process.job_lock`) and writes
 `jobs/<id>/windows/<k>.result.pkl` atomically before releasing it; a window whose result exists is
-never run again. So a window runs once at a time and its result is reused by a repeated delivery
-of the prepare task; a worker SIGKILLed in a window drops its connection and so its lock, and the
-prepare task (or another delivery) runs that window. A window that raises in a window task is run
-again by the prepare task, where it raises into the orient stage as it would in `citytherm run`.
-No chord and no result backend: completion is decided from the results on the shared storage by
-the one prepare task that waits for them, and the job's state stays in PostGIS.
+never run again; each run of a window logs a `window-span {json}` line (window, job, process, start
+and end in Unix time, CPU seconds; the timeline `bench/service.py` draws). So a window runs once at
+a time and its result is reused by a repeated delivery of the prepare task; a worker SIGKILLed in a
+window drops its connection and so its lock, and the prepare task (or another delivery) runs that
+window. A window that raises in a window task is run again by the prepare task, where it raises
+into the orient stage as it would in `citytherm run`. No chord and no result backend: completion is
+decided from the results on the shared storage by the one prepare task that waits for them, and the
+job's state stays in PostGIS.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import shutil
 import time
 import uuid
@@ -73,16 +77,24 @@ def _take(
             return None
         done = _stored(job_id, task.index)  # finished between the look and the lock
         if done is None:
+            t0, c0 = time.time(), time.process_time()
             done = function(task)
             storage.write_pickle(_result_path(job_id, task.index), done)
+            span = {"window": task.index, "job": str(job_id), "pid": os.getpid(),
+                    "start": round(t0, 3), "end": round(time.time(), 3),
+                    "cpu_s": round(time.process_time() - c0, 3)}  # fmt: skip
+            log.info("window-span %s", json.dumps(span))
     return done
 
 
-def celery_window_map(job_id: uuid.UUID, poll_s: float = POLL_S) -> WindowMap:
+def celery_window_map(
+    job_id: uuid.UUID, poll_s: float = POLL_S, idle: Callable[[], None] | None = None
+) -> WindowMap:
     """The prepare task's `map_windows` for job `job_id` (module docstring): results in window
     order, once all are there. A single window runs here without tasks. The window files are
     removed when the results have been read (or a window raised here: the orient stage fails as
-    in `citytherm run`)."""
+    in `citytherm run`). `idle` is called once, the first time this process has no window left
+    to take and waits for windows other workers hold (the prepare task plans its units then)."""
 
     def run(
         function: Callable[[WindowTask], WindowResult], items: Iterable[WindowTask]
@@ -97,13 +109,18 @@ def celery_window_map(job_id: uuid.UUID, poll_s: float = POLL_S) -> WindowMap:
             if not _result_path(job_id, t.index).exists():
                 send("citytherm.orient_window", str(job_id), t.index)
         results: dict[int, WindowResult] = {}
+        waiting = idle
         try:
             while len(results) < len(tasks):
                 for t in tasks:
                     if t.index not in results and (r := _take(job_id, t, function)) is not None:
                         results[t.index] = r
                 if len(results) < len(tasks):
-                    time.sleep(poll_s)
+                    if waiting is not None:
+                        waiting, call = None, waiting
+                        call()
+                    else:
+                        time.sleep(poll_s)
         finally:  # merged, or the stage failed: window tasks still queued find nothing to do
             shutil.rmtree(windows_dir(job_id), ignore_errors=True)
         for t in tasks:

@@ -6,18 +6,32 @@ exponential backoff (jittered, at most 300 s apart), at most `Settings.task_max_
 (`workers.celery_app` annotations), and never bad input (`service_job.BAD_INPUT`, which the work
 records as the job's or import's failure itself). A task that gives up records its failure
 (`service_upkeep.gave_up`).
+
+Every task run leaves one log line `task-span {json}` (logger `workers.tasks`, INFO): task name,
+arguments (ids), worker process id, start and end (Unix time, s), wall and CPU seconds of the
+process (`time.process_time`: all its threads) and the task's return value: the timeline of a job
+over the workers (`bench/service.py` reads it from the worker logs).
 """
 
 from __future__ import annotations
 
+import json
+import logging
+import os
+import time
 from typing import Any
 
 from celery import Task
-from celery.signals import worker_process_init
+from celery.signals import task_postrun, task_prerun, worker_process_init
 
 from workers import service_job, service_upkeep, service_windows
 from workers.celery_app import app
 from workers.pool import cap_library_threads
+
+log = logging.getLogger(__name__)
+
+#: per task id: (Unix time, process CPU seconds) when it started in this process
+_STARTED: dict[str, tuple[float, float]] = {}
 
 
 @worker_process_init.connect
@@ -31,6 +45,35 @@ def preload(**_: Any) -> None:
     import workers.pipeline.units  # noqa: F401
 
     cap_library_threads()
+
+
+@task_prerun.connect
+def task_started(task_id: str | None = None, **_: Any) -> None:
+    """Note when a task starts in this process (its `task-span` line, module docstring)."""
+    if task_id is not None:
+        _STARTED[task_id] = (time.time(), time.process_time())
+
+
+@task_postrun.connect
+def task_ended(
+    task_id: str | None = None, task: Task | None = None, args: Any = None, retval: Any = None, **_: Any
+) -> None:
+    """Log the task's `task-span` line (module docstring)."""
+    started = _STARTED.pop(task_id, None) if task_id is not None else None
+    if started is None or task is None:
+        return
+    end, cpu = time.time(), time.process_time()
+    span = {
+        "task": task.name,
+        "args": [str(a) for a in (args or ())],
+        "pid": os.getpid(),
+        "start": round(started[0], 3),
+        "end": round(end, 3),
+        "wall_s": round(end - started[0], 3),
+        "cpu_s": round(cpu - started[1], 3),
+        "result": str(retval)[:80],
+    }
+    log.info("task-span %s", json.dumps(span))
 
 
 class ServiceTask(Task):

@@ -21,6 +21,7 @@ from workers.pipeline.orientation.sequence import (
     orient_window,
     plan_windows,
 )
+from workers.pipeline.orientation.wireframe import mesh_wireframe
 from workers.pool import pool_map
 
 N = 24
@@ -82,9 +83,14 @@ def test_windows_in_a_process_pool_give_the_serial_result(drive, serial) -> None
 
 def test_windows_merge_in_any_order_and_every_window_is_needed(drive, serial) -> None:
     plan = plan_windows(*drive[1])
-    # a task travels without its ray caster and rebuilds it from the mesh
+    # a task travels without its ray caster and rebuilds it from the mesh; with the planner's
+    # scene wireframe, which equals the one made from the mesh
     task = pickle.loads(pickle.dumps(plan.tasks[1]))
     assert task.caster is None and task.frames == tuple(range(8, 24))
+    made = mesh_wireframe(task.mesh, task.options.coregister.edges)
+    assert task.wireframe is not None and task.wireframe is not plan.tasks[1].wireframe
+    assert np.array_equal(task.wireframe.vertices, made.vertices)
+    assert np.array_equal(task.wireframe.edges, made.edges)
     results = [orient_window(task), orient_window(plan.tasks[0])]
     _assert_same(serial, merge_windows(plan, results))
     with pytest.raises(ValueError, match=r"windows \[0\]"):

@@ -153,3 +153,32 @@ def test_a_window_that_raises_fails_the_stage_and_leaves_no_files(env) -> None:
     with pytest.raises(ValueError, match="window 1"):
         list(sw.celery_window_map(jid)(fails_on_1, [FakeWindow(0), FakeWindow(1)]))
     assert not sw.windows_dir(jid).exists()
+
+
+def test_idle_is_called_once_while_waiting_for_another_workers_window(env) -> None:
+    locks, _, jid = env
+    locks.held.add("window-1")
+    idled: list[tuple[int, bool]] = []
+
+    def other_worker() -> None:
+        time.sleep(0.3)
+        storage.write_pickle(sw._result_path(jid, 1), FakeResult(1, -1))
+        locks.held.discard("window-1")
+
+    threading.Thread(target=other_worker).start()
+    calls: list[int] = []
+    # when it is called, the windows this process could take are done, the held one is not
+    idle = lambda: idled.append((len(calls), sw._result_path(jid, 1).exists()))  # noqa: E731
+    run = sw.celery_window_map(jid, poll_s=0.02, idle=idle)
+    got = list(run(counting(calls), [FakeWindow(k) for k in range(3)]))
+    assert got == [FakeResult(0, 0), FakeResult(1, -1), FakeResult(2, 4)]
+    assert idled == [(2, False)]
+
+
+def test_idle_is_not_called_when_every_window_runs_here(env) -> None:
+    _, _, jid = env
+    idled: list[int] = []
+    calls: list[int] = []
+    run = sw.celery_window_map(jid, idle=lambda: idled.append(1))
+    got = list(run(counting(calls), [FakeWindow(0), FakeWindow(1)]))
+    assert got == [FakeResult(0, 0), FakeResult(1, 1)] and idled == []

@@ -72,7 +72,7 @@ from workers.pipeline.orientation.sequence_windows import (
 )
 from workers.pipeline.orientation.smoothing import prior_noise, smooth_poses
 from workers.pipeline.orientation.tracks import Tracks
-from workers.pipeline.orientation.wireframe import WireframeError, mesh_wireframe
+from workers.pipeline.orientation.wireframe import Wireframe, WireframeError, mesh_wireframe
 
 __all__ = [
     "SEQUENCE_PLATFORMS",
@@ -214,15 +214,17 @@ def plan_windows(
     times: Mapping[int, float],
     accuracy: Accuracy | None,
     options: SequenceOrientationOptions = SequenceOrientationOptions(),
+    wireframe: Wireframe | None = None,
 ) -> WindowPlan:
     """Cut the sequence into windows (`windows`), each a `WindowTask` with its start poses and
     prior information; no tasks when the scene has no wireframe or there are fewer than 2 frames.
     Arguments as `orient_sequence`."""
     frames = [int(f) for f in frames]
     base = {f: prior[f] for f in frames}
-    scene_wf = None
-    with contextlib.suppress(WireframeError):
-        scene_wf = mesh_wireframe(raycaster.mesh, options.coregister.edges)
+    scene_wf = wireframe
+    if scene_wf is None:
+        with contextlib.suppress(WireframeError):
+            scene_wf = mesh_wireframe(raycaster.mesh, options.coregister.edges)
     if scene_wf is None or len(frames) < 2:
         return WindowPlan(tuple(frames), base, (), {})
     start, options, noise = _start_poses(prior, frames, times, options)
@@ -282,6 +284,7 @@ def orient_sequence(
     options: SequenceOrientationOptions = SequenceOrientationOptions(),
     progress: Callable[[int, int], None] | None = None,
     map_windows: WindowMap = map,
+    wireframe: Wireframe | None = None,
 ) -> SequenceOrientation:
     """Orient every frame of the sequence in blocks (see the module docstring): `plan_windows`,
     `orient_window` over the windows through `map_windows`, `merge_windows`.
@@ -299,8 +302,10 @@ def orient_sequence(
         progress: called with (windows done, windows) before the first and after each window.
         map_windows: runs the windows (`WindowMap`): the built-in `map` here, one after the other;
             a process pool's `map` gives the same result.
+        wireframe: `mesh_wireframe(raycaster.mesh, options.coregister.edges)` when the caller has
+            it already (the calibrate stage made the same one); None: made here.
     """
-    plan = plan_windows(camera, raycaster, frames, frame_source, prior, times, accuracy, options)
+    plan = plan_windows(camera, raycaster, frames, frame_source, prior, times, accuracy, options, wireframe)
     if not plan.tasks:
         return SequenceOrientation(dict(plan.prior), {}, [], Tracks.empty())
     n = len(plan.tasks)

@@ -10,8 +10,9 @@ same result as one after the other.
 
 A task pickles without its ray caster (an Open3D scene, not picklable): it carries the scene mesh
 and rebuilds the caster once per process and plan (`WindowTask.scene`), keyed by the plan's
-`scene_key`. In the process that planned it the caster and the scene wireframe are the planner's
-own objects.
+`scene_key`; it carries the planner's scene wireframe (plain arrays, a pure function of the mesh
+and the edge options: remaking it took about 7 % of a window's time). In the process that planned
+it the caster and the scene wireframe are the planner's own objects.
 """
 
 from __future__ import annotations
@@ -45,8 +46,16 @@ class SequenceOrientationOptions:
     # deviation and the null shift from its `prior`
     coregister: CoregisterOptions = field(default_factory=CoregisterOptions)
     # windows of consecutive frames, their overlap (a frame near a window's end has less context:
-    # it takes its pose from the neighbouring window), a gap longer than this splits the sequence
-    window_frames: int = 120
+    # it takes its pose from the neighbouring window), a gap longer than this splits the sequence.
+    # 70 / 30 (was 120 / 30, issue 14): a 100-frame drive is two windows (0-69, 30-99), which two
+    # workers orient at once (the service's window tasks, `citytherm run --workers 2`); the
+    # block's cost is linear in its frames (a long drive: 70 / 40 frame-windows per frame against
+    # 120 / 90, +31 % orient CPU). On the service bench's drive past the Berlin model (seed 1)
+    # these two windows keep the accuracy of the one window of 100: frames below 1 px 0.90 (0.90),
+    # median 0.26 px (0.25), 90th percentile 0.80 px (0.93), texture RMSE 0.260 K (0.259),
+    # misregistration 0.111 texel (0.108); windows of 60 / 20 lost some (0.89, 0.29 px, 1.1 px,
+    # 0.299 K, 0.120 texel; pairs below 1 px 0.855 against 0.862)
+    window_frames: int = 70
     overlap_frames: int = 30
     max_gap_s: float = 1.0
     # when the priors' white noise (`smoothing.prior_noise`) exceeds `noisy_factor` × the
@@ -90,7 +99,8 @@ class WindowTask:
         options: the sequence options as the window runs them (the noisy-prior variant included).
         scene_key: identifies the plan's scene mesh (the per-process caster cache key).
         mesh: the buildings near the cameras (model CRS, local origin).
-        caster, wireframe: the planner's ray caster over `mesh` and its wireframe; not pickled.
+        caster, wireframe: the planner's ray caster over `mesh` (not pickled) and the scene
+            wireframe (pickled with the task).
     """
 
     index: int
@@ -107,9 +117,9 @@ class WindowTask:
     wireframe: Wireframe | None = field(default=None, repr=False)
 
     def __getstate__(self) -> dict[str, Any]:
-        """Pickled without the ray caster and wireframe (rebuilt from `mesh` where it runs)."""
+        """Pickled without the ray caster (rebuilt from `mesh` where it runs)."""
         state = dict(self.__dict__)
-        state["caster"] = state["wireframe"] = None
+        state["caster"] = None
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -117,12 +127,15 @@ class WindowTask:
 
     def scene(self) -> tuple[RayCaster, Wireframe]:
         """The ray caster over `mesh` and its wireframe: the planner's, else built once per
-        process and plan."""
+        process and plan (the wireframe: the one the task carries, else made from `mesh`)."""
         if self.caster is not None and self.wireframe is not None:
             return self.caster, self.wireframe
         if not _SCENE or _SCENE[0][0] != self.scene_key:
             caster = RayCaster(self.mesh)
-            _SCENE[:] = [(self.scene_key, caster, mesh_wireframe(self.mesh, self.options.coregister.edges))]
+            wf = self.wireframe
+            if wf is None:
+                wf = mesh_wireframe(self.mesh, self.options.coregister.edges)
+            _SCENE[:] = [(self.scene_key, caster, wf)]
         return _SCENE[0][1], _SCENE[0][2]
 
 
