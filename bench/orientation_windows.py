@@ -85,7 +85,7 @@ def main() -> None:
                 yield r
 
         c0 = time.process_time()
-        so_opts = SequenceOrientationOptions(window_frames=w, overlap_frames=o)
+        so_opts = SequenceOrientationOptions(window_frames=w, overlap_frames=o, min_window_frames=w)
         so = orient_sequence(cam, caster, frames, ing.frames, dict(zip(frames, cal.priors, strict=True)),
                              dict(zip(frames, ing.times, strict=True)), cal.accuracy, so_opts,
                              map_windows=timed)  # fmt: skip

@@ -155,24 +155,37 @@ class SequenceOrientation:
 def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list[tuple[int, int]]:
     """Windows `(start, stop)` (positions into `times`, stop exclusive) of consecutive frames:
     runs split where the time step exceeds `max_gap_s` (runs of a single frame give no window),
-    each run into windows of `window_frames` overlapping by `overlap_frames` (the last window is
-    taken back so that it is full when the run allows).
+    each run into windows overlapping by `overlap_frames` (the last window is taken back so that
+    it is full when the run allows). A run of up to `min_window_frames` is one window; a longer
+    one is cut into at least `min_windows` windows: of length `ceil((n + (min_windows − 1) ·
+    overlap) / min_windows)` within `[min_window_frames, window_frames]`.
 
-    >>> windows([0.0, 0.1, 0.2, 0.3, 5.0, 5.1], SequenceOrientationOptions(window_frames=3, overlap_frames=1))
+    >>> o = SequenceOrientationOptions(window_frames=3, overlap_frames=1, min_window_frames=3)
+    >>> windows([0.0, 0.1, 0.2, 0.3, 5.0, 5.1], o)
     [(0, 3), (1, 4), (4, 6)]
-    >>> windows([0.0, 5.0, 5.1], SequenceOrientationOptions(window_frames=3, overlap_frames=1))
+    >>> windows([0.0, 5.0, 5.1], o)
     [(1, 3)]
+    >>> [windows(np.arange(n) * 0.1, SequenceOrientationOptions()) for n in (60, 100)]
+    [[(0, 60)], [(0, 70), (30, 100)]]
+    >>> len(windows(np.arange(300) * 0.1, SequenceOrientationOptions()))  # windows of 120 / 30
+    3
     """
     t = np.asarray(times, dtype=np.float64)
     if len(t) == 0:
         return []
     cuts = [0, *(np.flatnonzero(np.diff(t) > options.max_gap_s) + 1).tolist(), len(t)]
-    W = int(options.window_frames)
-    step = W - int(options.overlap_frames)
+    W_max, overlap = int(options.window_frames), int(options.overlap_frames)
+    W_min = min(int(options.min_window_frames), W_max)
+    k = max(int(options.min_windows), 1)
     out: list[tuple[int, int]] = []
     for a, b in itertools.pairwise(cuts):
         if b - a < 2:
             continue
+        if b - a <= W_min:
+            out.append((a, b))
+            continue
+        W = min(W_max, max(W_min, -(-(b - a + (k - 1) * overlap) // k)))
+        step = W - overlap
         if b - a <= W:
             out.append((a, b))
             continue

@@ -47,15 +47,18 @@ class SequenceOrientationOptions:
     coregister: CoregisterOptions = field(default_factory=CoregisterOptions)
     # windows of consecutive frames, their overlap (a frame near a window's end has less context:
     # it takes its pose from the neighbouring window), a gap longer than this splits the sequence.
-    # 70 / 30 (was 120 / 30, issue 14): a 100-frame drive is two windows (0-69, 30-99), which two
-    # workers orient at once (the service's window tasks, `citytherm run --workers 2`); the
-    # block's cost is linear in its frames (a long drive: 70 / 40 frame-windows per frame against
-    # 120 / 90, +31 % orient CPU). On the service bench's drive past the Berlin model (seed 1)
-    # these two windows keep the accuracy of the one window of 100: frames below 1 px 0.90 (0.90),
-    # median 0.26 px (0.25), 90th percentile 0.80 px (0.93), texture RMSE 0.260 K (0.259),
-    # misregistration 0.111 texel (0.108); windows of 60 / 20 lost some (0.89, 0.29 px, 1.1 px,
-    # 0.299 K, 0.120 texel; pairs below 1 px 0.855 against 0.862)
-    window_frames: int = 70
+    # A run is cut into at least `min_windows` windows of at least `min_window_frames` (so that
+    # two workers orient a short drive at once: the service's window tasks, `citytherm run
+    # --workers 2`), of at most `window_frames` otherwise. Issue 14: the service bench's
+    # 100-frame drive is two windows of 70 (0-69, 30-99) and keeps the accuracy of one window of
+    # 100 (drive past the Berlin model, seed 1: frames below 1 px 0.90 (0.90), median 0.26 px
+    # (0.25), 90th percentile 0.80 px (0.93), texture RMSE 0.260 K (0.259), misregistration 0.111
+    # texel (0.108); windows of 60 / 20 lost some: 0.89, 0.29 px, 1.1 px, 0.299 K, 0.120 texel).
+    # Long drives keep windows of 120: the block's cost is linear in its frames, and windows of
+    # 70 / 30 would cost +31 % orient CPU there (70 / 40 frame-windows per frame against 120 / 90).
+    window_frames: int = 120
+    min_window_frames: int = 70
+    min_windows: int = 2
     overlap_frames: int = 30
     max_gap_s: float = 1.0
     # when the priors' white noise (`smoothing.prior_noise`) exceeds `noisy_factor` × the
