@@ -161,3 +161,36 @@ def test_frames_left_at_uncertain_priors_do_not_texture_the_building(sigma_m, si
     else:  # priors metres off: no texture from them, and the report says why
         assert set(result.frames_withheld) == set(unit.frames)
         assert wall.texels_observed == 0 and "withheld" in wall.reason
+
+
+@pytest.mark.parametrize("coplanar_clean", [True, False])
+def test_pixels_of_a_coplanar_polygon_are_clean_only_when_asked(coplanar_clean: bool) -> None:
+    """A wall split into two coplanar polygons at x = 4, seen head-on from 12 m (about 65 pixels
+    per metre): a texel 1 cm from the seam reads pixels of both; they count as clean for it only
+    with `VisibilityOptions.coplanar_clean` (otherwise only its own polygon's pixels do), while a
+    texel 1 m from the seam is clean either way."""
+    from dataclasses import replace as _replace
+
+    from tests.unit.orientation_scenes import CAMERA, _poly
+    from tests.unit.orientation_scenes import box_building as box
+    from tests.unit.orientation_scenes import look_at as look
+    from workers.pipeline.geometry.citymodel import Building
+    from workers.pipeline.texture.occlusion import OcclusionScene
+    from workers.pipeline.texture.visibility import VisibilityOptions
+
+    b = box("S", 0, 0, 10, 8, 6)
+    polys = [p for p in b.polygons if p.id != "S_ws"]
+    polys += [
+        _poly("S_ws1", [(0, 0, 0), (4, 0, 0), (4, 0, 6), (0, 0, 6)], "WallSurface"),
+        _poly("S_ws2", [(4, 0, 0), (10, 0, 0), (10, 0, 6), (4, 0, 6)], "WallSurface"),
+    ]
+    opts = _replace(VisibilityOptions(), coplanar_clean=coplanar_clean, buffer_step_px=1)
+    mesh = build_scene_mesh([Building(id="S", polygons=tuple(polys))])
+    scene = OcclusionScene(RayCaster(mesh), CAMERA, opts)
+    pose = look(np.array([4.0, -12.0, 3.0]), np.array([4.0, 0.0, 3.0]))
+    X = np.array([[3.99, 0.0, 3.0], [3.0, 0.0, 3.0]])  # on S_ws1: at the seam, 1 m from it
+    uv, _ = pose.project(CAMERA, X)
+    dist = np.linalg.norm(X - pose.center, axis=1)
+    own = scene.polygon_group[scene.polygon_index["S_ws1"]]
+    ok = scene.visible_flat(pose, uv, dist, np.full(2, own))
+    assert ok.tolist() == [coplanar_clean, True]

@@ -221,7 +221,8 @@ class OcclusionScene:
         self.options = options
         self._corners = _CastGrid(corner_rays(camera)) if options.pixel_area else None
         self.polygon_index = mesh.polygon_index()
-        self.polygon_group = np.append(plane_groups(mesh, options), -1).astype(np.intp)
+        groups = plane_groups(mesh, options) if options.coplanar_clean else np.arange(mesh.n_polygons)
+        self.polygon_group = np.append(groups, -1).astype(np.intp)
 
     def buffer(self, pose: Pose, uv: np.ndarray, step: int = 1, margin: int = 0) -> HitBuffer:
         """Cast the grid of every `step`-th pixel around `uv (N, 2)` (the 2x2 grid elements around

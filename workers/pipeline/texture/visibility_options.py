@@ -42,6 +42,8 @@ class VisibilityOptions:
         coplanar_deg, coplanar_m: polygons of one building whose normals differ by less than
             `coplanar_deg` and whose planes are less than `coplanar_m` apart form one plane (a
             facade split into several polygons).
+        coplanar_clean: pixels that see such a coplanar polygon count as clean for the
+            texel's polygon (False: only pixels of the texel's own polygon do).
     """
 
     margin_px: float = 2.0
@@ -57,3 +59,4 @@ class VisibilityOptions:
     pixel_area: bool = True
     coplanar_deg: float = 1.0
     coplanar_m: float = 0.05
+    coplanar_clean: bool = True
