@@ -32,8 +32,9 @@ Method:
    `max_frames` best-seeing, one per stretch of the sequence, take part: the cost does not grow
    with the sequence length;
 2. start: the common correction `(ω, b)` from `common_correction.joint_fit` against the scene
-   wireframe (oriented-gradient search over common image shifts and common world translations,
-   coarse to fine within the correction's plausible range, then a robust adjustment) on at most
+   wireframe (oriented-gradient search over common image shifts, also with the cameras rolled
+   about their optical axes, and over common world translations, coarse to fine within the
+   correction's plausible range; then a robust adjustment) on at most
    `start_frames` frames of the first frame set where one fits: the picked frames, then
    `start_segments` consecutive stretches, when the camera turns less than `start_turn_deg`
    over the sequence; else the first `start_segments` stretches of consecutive frames that turn
@@ -116,7 +117,8 @@ class CalibrationOptions:
     # does not align frames with white noise; the final test below, after the per-frame
     # deviations are adjusted, decides)
     joint: JointOptions = field(default_factory=lambda: JointOptions(
-        max_frames=40, coarse_frames=10, verify_frames=6, max_correction_m=12.0, max_correction_deg=10.0,
+        max_frames=40, coarse_frames=10, verify_frames=6, coarse_rolls_deg=(-8.0, -4.0, 0.0, 4.0, 8.0),
+        max_correction_m=12.0, max_correction_deg=10.0,
         min_mean_support=0.2, visibility_reuse_px=3.0))
     edges: EdgeOptions = field(default_factory=EdgeOptions)
     fit: FrameFitOptions = field(default_factory=FrameFitOptions)
