@@ -26,14 +26,20 @@ Model (`calibration_model`): frame i's correction `δ_i = (ω_i, dC_i)`
 vibration) of a-priori σ `prior.frame_sigma_*` (`priors.PriorOptions`), eliminated by a Schur complement.
 
 Method:
-1. up to `max_frames` frames spread over the sequence whose prior view shows scene edges, chosen
-   among at most `look_frames` evenly spread ones (the cost is bounded, whatever the sequence
-   length; the visible samples of each frame come from its part of the scene wireframe,
-   `edge_observations.FrameWireframes`);
-2. start: the common correction `(ω, b)` of those frames from `common_correction.joint_fit`
-   against the scene wireframe (oriented-gradient search over common image shifts and common
-   world translations, then a robust adjustment), or where none fits them all (a long drive's
-   turns), of the first of `start_segments` consecutive stretches where one does; `l = 0`, `τ = 0`;
+1. a bounded sample of frames (`calibration_frames`): at most `look_frames` evenly spread frames
+   are looked at (their visible samples come from their part of the scene wireframe,
+   `edge_observations.FrameWireframes`), and of those whose prior view shows scene edges the
+   `max_frames` best-seeing, one per stretch of the sequence, take part: the cost does not grow
+   with the sequence length;
+2. start: the common correction `(ω, b)` from `common_correction.joint_fit` against the scene
+   wireframe (oriented-gradient search over common image shifts, also with the cameras rolled
+   about their optical axes, and over common world translations, coarse to fine within the
+   correction's plausible range; then a robust adjustment) on at most
+   `start_frames` frames of the first frame set where one fits: the picked frames, then
+   `start_segments` consecutive stretches, when the camera turns less than `start_turn_deg`
+   over the sequence; else the first `start_segments` stretches of consecutive frames that turn
+   less than that (a lever-arm error turns with the camera; one common correction does not fit
+   across a drive's turns); `l = 0`, `τ = 0`;
 3. Gauss-Newton of θ and the `ε_i` from every frame's edge-normal distances (1-D gradient search
    along each projected edge sample, Tukey weights; `edge_observations.normal_equations`) with a
    shrinking search radius; θ has a weighted prior of zero (`Accuracy` for `ω` and `b`,
@@ -57,18 +63,18 @@ from workers.pipeline.geometry.manifest import Accuracy, FrameSource
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.orientation.calibration_model import N_PARAMS, delay_poses, design, frame_motion
+from workers.pipeline.orientation.calibration_delay import delay_search
+from workers.pipeline.orientation.calibration_frames import SampleOptions, sample_frames, start_sets
+from workers.pipeline.orientation.calibration_model import N_PARAMS, design, frame_designs, frame_motion
 from workers.pipeline.orientation.common_correction import JointOptions, joint_fit
 from workers.pipeline.orientation.edge_observations import (
     FrameWireframes,
     edge_support,
     frame_edges,
-    image_normals,
     normal_equations,
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
-from workers.pipeline.orientation.oriented_gradient import downsampled_gradient, oriented_gradient_score
 from workers.pipeline.orientation.priors import PriorOptions, frame_noise_information
 from workers.pipeline.orientation.wireframe import (
     EdgeOptions,
@@ -91,21 +97,28 @@ __all__ = [
 class CalibrationOptions:
     """Parameters of the sequence calibration (metres, degrees, seconds, pixels)."""
 
-    # at most this many frames (evenly spread over the sequence) take part, chosen among at
-    # most `look_frames` (evenly spread) whose prior view shows scene edges: the cost does not
-    # grow with the sequence length
-    max_frames: int = 40
-    look_frames: int = 80
-    # when one common correction of those frames is not found (`joint`), it is searched on this
-    # many consecutive stretches of the looked-at frames in turn, the first found the start (the
-    # 300-frame NRW drive: none over the whole drive, mean edge support 0.07; its first third gives
-    # one, and the calibration from there leaves 0.17° / 0.2 m σ over all 300 frames)
+    # at most this many frames take part (each the best-seeing of its stretch of the sequence),
+    # chosen among at most `look_frames` (evenly spread) whose prior view shows scene edges: the
+    # cost does not grow with the sequence length (`calibration_frames`)
+    max_frames: int = 24
+    look_frames: int = 48
+    # the start (one common correction, `joint`) is searched on frame sets in turn, each of at most
+    # `start_frames` frames: the picked frames, then `start_segments` consecutive stretches of the
+    # looked-at frames, when their camera rotation stays within `start_turn_deg` (one common
+    # correction cannot fit a lever-arm error across turns); else the `start_segments` stretches
+    # within that rotation of at least `min_start_frames` frames that see the most scene edges
+    # (the 300-frame NRW drive: none over the whole drive, mean edge support 0.07; its first
+    # third gives one, and the calibration from there leaves 0.17° / 0.2 m σ over all 300 frames)
     start_segments: int = 3
+    start_frames: int = 20
+    start_turn_deg: float = 45.0
+    min_start_frames: int = 10
     # the start: `joint_fit` over the frames (its support test is loose: one common correction
     # does not align frames with white noise; the final test below, after the per-frame
     # deviations are adjusted, decides)
     joint: JointOptions = field(default_factory=lambda: JointOptions(
-        max_frames=40, coarse_frames=20, max_correction_m=12.0, max_correction_deg=10.0,
+        max_frames=40, coarse_frames=10, verify_frames=6, coarse_rolls_deg=(-8.0, -4.0, 0.0, 4.0, 8.0),
+        max_correction_m=12.0, max_correction_deg=10.0,
         min_mean_support=0.2, visibility_reuse_px=3.0))
     edges: EdgeOptions = field(default_factory=EdgeOptions)
     fit: FrameFitOptions = field(default_factory=FrameFitOptions)
@@ -298,41 +311,30 @@ def calibrate_sequence(
             return replace(zero, reason=f"no scene wireframe: {e}")
     if len(frames) < options.min_supported_frames:
         return replace(zero, reason="too few frames")
-    ordered = [priors[i] for i in frames]
-    v, w = frame_motion(ordered, [times[i] for i in frames])
-    A = {i: design(priors[i], v[k], w[k]) for k, i in enumerate(frames)}
-    # frames whose prior view shows scene edges, spread over the sequence
+    # a bounded sample of frames that see the model, spread over the sequence (`calibration_frames`)
     fo = options.fit
     wfs = FrameWireframes(wireframe, camera)
-    usable = []
-    # long sequences: only an evenly spread subset is looked at
-    n_look = min(len(frames), max(options.look_frames, options.max_frames))
-    for i in (frames[k] for k in np.unique(np.linspace(0, len(frames) - 1, n_look).round().astype(int))):
-        vis = wfs.visible(i, priors[i], raycaster, options.edges, 64)
-        if len(vis.points) >= fo.min_samples:
-            usable.append(i)
-    if len(usable) < options.min_supported_frames:
+    so = _sample_options(options)
+    sample = sample_frames(frames, priors, wfs, raycaster, options.edges, so)
+    if len(sample.usable) < options.min_supported_frames:
         return replace(zero, reason="too few frames see the model")
-    pick = [usable[k] for k in np.unique(np.linspace(0, len(usable) - 1, min(len(usable), options.max_frames))
-                                         .round().astype(int))]
+    pick = list(sample.pick)
     images = {i: frame_source.load(i) for i in pick}
     P = _prior_information(accuracy, options)
-    start = joint_fit(camera, wfs, raycaster, pick, images, {i: priors[i] for i in pick}, P[:6, :6],
-                      replace(options.joint, max_frames=options.max_frames), fo, options.edges,
-                      options.features, options.prior)
-    for part in [] if start.accepted else np.array_split(np.asarray(usable), max(options.start_segments, 1)):
-        # no common correction over the whole drive: from a stretch of it (the adjustment below
-        # models what varies along the drive: lever arm with the heading, delay at the turns)
-        seg = [int(i) for i in part]
-        images.update({i: frame_source.load(i) for i in seg if i not in images})
-        got = joint_fit(camera, wfs, raycaster, seg, images, {i: priors[i] for i in seg}, P[:6, :6],
-                        replace(options.joint, max_frames=options.max_frames), fo, options.edges,
-                        options.features, options.prior)
-        if got.accepted:
-            start = got
+    start = None
+    for part in start_sets(sample, priors, so):
+        # the first set of frames one common correction fits (the adjustment below models what
+        # varies along the drive: lever arm with the heading, delay at the turns)
+        images.update({i: frame_source.load(i) for i in part if i not in images})
+        start = joint_fit(camera, wfs, raycaster, part, images, {i: priors[i] for i in part}, P[:6, :6],
+                          replace(options.joint, max_frames=options.start_frames), fo, options.edges,
+                          options.features, options.prior)
+        if start.accepted:
             break
-    if not start.accepted:
-        return replace(zero, reason=f"no common correction: {start.reason}", frames=tuple(pick))
+    if start is None or not start.accepted:
+        reason = start.reason if start is not None else "no frame set"
+        return replace(zero, reason=f"no common correction: {reason}", frames=tuple(pick))
+    A = frame_designs(frames, priors, times, pick)
     corrected = {i: apply_delta(priors[i], start.delta) for i in pick}
     margin = options.radius_start_px + fo.roi_margin_px
     found = frame_edges(camera, wfs, raycaster, pick, images, corrected, margin, fo, options.edges,
@@ -345,7 +347,8 @@ def calibrate_sequence(
         # the delay shows at turns only, often beyond the fine stage's search radius: searched on
         # a grid at the adjusted parameters, then adjusted again from there when it moved
         theta1 = cal.theta.copy()
-        theta1[9] = _delay_search(camera, wfs, raycaster, data, images, cal.theta, options)
+        theta1[9] = delay_search(camera, wfs, raycaster, data, images, cal.theta, options.delay_search_s,
+                                 options.delay_step_s, options.edges, fo)
         if abs(theta1[9] - cal.theta[9]) > options.delay_step_s:
             again = _adjust(camera, wfs, raycaster, data, theta1, P, options)
             if again.mean_support >= cal.mean_support:
@@ -353,41 +356,12 @@ def calibrate_sequence(
     return _accept(replace(cal, frames=tuple(f.index for f in data)), options)
 
 
-def _delay_search(
-    camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster, data: list[_Frame],
-    images: Mapping[int, np.ndarray], theta0: np.ndarray, options: CalibrationOptions,
-) -> float:
-    """Time delay τ (s) maximising the oriented-gradient score (`oriented_gradient`) of the
-    scene wireframe over the frames, the other parameters at `theta0`; 0 when no frame turns or
-    moves enough for τ to matter."""
-    taus = np.arange(-options.delay_search_s, options.delay_search_s + 1e-12, options.delay_step_s)
-    total = np.zeros(len(taus))
-    used = 0
-    for f in data:
-        col = f.A[:, 9]
-        pose = apply_delta(f.prior, f.A @ theta0)
-        vis = wireframe.visible(f.index, pose, raycaster, options.edges, options.fit.max_samples)
-        if len(vis.points) < options.fit.min_samples:
-            continue
-        # the delay's effect on this frame, pixels per second, at the samples' median depth
-        uv, z = pose.project(camera, vis.points)
-        ok = np.isfinite(uv).all(axis=1) & (z > 0.5)
-        if ok.sum() < options.fit.min_samples:
-            continue
-        zmed = float(np.median(z[ok]))
-        px_per_s = camera.fx * (np.linalg.norm(col[:3]) + np.linalg.norm(col[3:]) / zmed)
-        if px_per_s * options.delay_step_s < 0.5:
-            continue
-        nrm = image_normals(camera, pose, vis, uv)[ok]
-        # every τ at once
-        R, C = delay_poses(f.prior, f.A, theta0, taus)
-        xc = np.einsum("tnk,tkj->tnj", vis.points[ok][None] - C[:, None], R)
-        grad = downsampled_gradient(images[f.index], 2, 1.0)
-        total += oriented_gradient_score(grad, 2, camera.project(xc), nrm, vis.weight[ok])
-        used += 1
-    if used == 0:
-        return 0.0
-    return float(taus[int(np.argmax(total))])
+def _sample_options(options: CalibrationOptions) -> SampleOptions:
+    """The frame sample's options (`calibration_frames`) of the calibration's."""
+    return SampleOptions(look_frames=options.look_frames, max_frames=options.max_frames,
+                         start_frames=options.start_frames, start_segments=options.start_segments,
+                         start_turn_deg=options.start_turn_deg, min_start_frames=options.min_start_frames,
+                         min_samples=options.fit.min_samples)
 
 
 def _adjust(

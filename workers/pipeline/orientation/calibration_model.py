@@ -14,14 +14,14 @@ manifest's mounting terms).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import so3_log
 
-__all__ = ["N_PARAMS", "delay_poses", "design", "frame_motion"]
+__all__ = ["N_PARAMS", "delay_poses", "design", "frame_designs", "frame_motion"]
 
 #: number of calibration parameters θ
 N_PARAMS = 10
@@ -57,6 +57,22 @@ def design(pose: Pose, velocity: np.ndarray, rate: np.ndarray) -> np.ndarray:
     A[3:6, 6:9] = pose.R_world_from_cam
     A[3:6, 9] = -velocity
     return A
+
+
+def frame_designs(frames: Sequence[int], priors: Mapping[int, Pose], times: Mapping[int, float],
+                  pick: Sequence[int]) -> dict[int, np.ndarray]:
+    """`{frame: A_i (6, 10)}` of the frames of `pick`, their motion from their neighbours in
+    `frames` (recording order; `frame_motion`, at a cost that does not grow
+    with the sequence length)."""
+    where = {f: k for k, f in enumerate(frames)}
+    out = {}
+    for i in pick:
+        k = where[i]
+        near = frames[max(k - 1, 0): k + 2]
+        v, w = frame_motion([priors[j] for j in near], [times[j] for j in near])
+        m = near.index(i)
+        out[i] = design(priors[i], v[m], w[m])
+    return out
 
 
 def delay_poses(

@@ -19,7 +19,9 @@ Two stages:
    for common image shifts on a grid (`oriented_gradient`: frames downsampled and smoothed; the
    score of a sample is the image gradient component along the projected edge's normal minus the
    one across it, normalised per frame): correspondence-free and insensitive to the window rows the model does
-   not contain (a plain distance transform is not). The best local maxima are candidates; so
+   not contain (a plain distance transform is not), optionally with the cameras also rolled about
+   their optical axes (`coarse_rolls_deg`: a flight's boresight error turns the image). The best
+   local maxima are candidates; so
    are the best common world translations (searched coarse to fine: the whole range on a grid
    of at most 7 × 7 × 7 nodes on strongly smoothed frames, then finer grids around the best
    only, `_translation_levels`): at close range a position bias shifts near and far facades
@@ -47,7 +49,7 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta, bounded_step, pose_delta
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.orientation.coarse import shift_pose
+from workers.pipeline.orientation.coarse import candidate_pose, shift_pose
 from workers.pipeline.orientation.edge_observations import (
     FrameWireframes,
     edge_support,
@@ -85,6 +87,10 @@ class JointOptions:
     coarse_frames: int = 16
     candidates: int = 3
     candidate_separation_px: float = 40.0
+    # ... also with the cameras rolled about their optical axes by these angles (degrees; each
+    # non-zero roll on a grid of twice the step): a boresight error about the optical axis (a
+    # flight's) turns the image, which no common shift explains
+    coarse_rolls_deg: tuple[float, ...] = (0.0,)
     # ... and common world translations up to this many metres per axis on a grid of this step
     # (frames downsampled and smoothed by these), the best `translation_candidates` refined on a
     # grid of a quarter step
@@ -241,29 +247,52 @@ def _coarse_candidates(
     out = [np.zeros(6)]
     if not samples:
         return out
-    # common image shifts
+    # common image shifts (and rolls about the optical axis)
     step = options.coarse_step_px
     r = int(np.ceil(options.coarse_radius_px / step))
     grid = np.arange(-r, r + 1) * step
     sx, sy = np.meshgrid(grid, grid)
     shifts = np.stack([sx.ravel(), sy.ravel()], axis=1)
-    total = np.zeros(len(shifts))
+    half = ((np.arange(len(grid)) % 2 == 0)[None, :] & (np.arange(len(grid)) % 2 == 0)[:, None]).ravel()
+    rolls = np.radians(np.asarray(options.coarse_rolls_deg, dtype=np.float64).reshape(-1))
+    total = np.full((len(rolls), len(shifts)), -np.inf)
     grads = {}
-    for fr, _, uv, nrm, w, _ in samples:
+    for fr, X, uv, nrm, w, _ in samples:
         grads[fr.index] = downsampled_gradient(images[fr.index], ds, options.coarse_sigma_px)
-        total += oriented_gradient_score(grads[fr.index], ds, uv[None] + shifts[:, None], nrm, w)
+        for q, roll in enumerate(rolls):
+            at = np.ones(len(shifts), bool) if roll == 0 else half
+            uq, nq = (uv, nrm) if roll == 0 else _rolled(camera, fr.prior, X, uv, nrm, roll)
+            score = oriented_gradient_score(grads[fr.index], ds, uq[None] + shifts[at][:, None], nq, w)
+            total[q, at] = np.where(np.isfinite(total[q, at]), total[q, at], 0.0) + score
     dmed = float(np.median([smp[5] for smp in samples]))
     centre = np.array([camera.cx, camera.cy])
     ref_pose = data[len(data) // 2].prior
     sep = int(np.ceil(options.candidate_separation_px / step))
-    for iy, ix in _peaks(total.reshape(sx.shape), options.candidates, sep):
+    for q, iy, ix in _peaks(total.reshape(len(rolls), *sx.shape), options.candidates, sep):
         shift = np.array([grid[ix], grid[iy]])
-        if shift.any():
-            out.append(pose_delta(ref_pose, shift_pose(camera, ref_pose, centre, shift, dmed, fo)))
+        if shift.any() or rolls[q] != 0:
+            rolled = candidate_pose(ref_pose, 0.0, float(rolls[q]))
+            out.append(pose_delta(ref_pose, shift_pose(camera, rolled, centre, shift, dmed, fo)))
     # common world translations, coarse to fine (`_translation_levels`)
     centres = _translation_search(camera, samples, images, grads, options)
     out += [np.concatenate([np.zeros(3), c]) for c in centres if np.any(c)]
     return out
+
+
+def _rolled(camera: Camera, pose: Pose, X: np.ndarray, uv: np.ndarray, nrm: np.ndarray,
+            roll: float) -> tuple[np.ndarray, np.ndarray]:
+    """Image points `(N, 2)` of the samples `X` `(N, 3)` (world) seen from `pose` rolled by `roll`
+    (rad) about its optical axis, and their normals `nrm` `(N, 2)` (at `uv`, unrolled) turned by
+    the image's median turn (where a sample leaves the image: where it was)."""
+    uq = candidate_pose(pose, 0.0, roll).project(camera, X)[0]
+    c = np.array([camera.cx, camera.cy])
+    a0, a1 = uv - c, uq - c
+    turn = np.arctan2(a0[:, 0] * a1[:, 1] - a0[:, 1] * a1[:, 0], np.sum(a0 * a1, axis=1))
+    ok = np.isfinite(turn) & (np.linalg.norm(a0, axis=1) > 20.0)
+    phi = float(np.median(turn[ok])) if ok.any() else 0.0
+    cs, sn = np.cos(phi), np.sin(phi)
+    nq = np.stack([cs * nrm[:, 0] - sn * nrm[:, 1], sn * nrm[:, 0] + cs * nrm[:, 1]], axis=1)
+    return np.where(np.isfinite(uq), uq, uv), nq
 
 
 def _translation_levels(options: JointOptions) -> list[tuple[float, float, int, float, bool]]:

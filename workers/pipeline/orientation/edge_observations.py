@@ -178,6 +178,11 @@ def normal_equations(
     nrm = image_normals(camera, pose, vis, uv)
     off, found = edge_search(feats, uv, nrm, R_e, options)
     A = np.einsum("ni,nij->nj", nrm, J)
+    # samples that do not project (behind the camera at a far-off candidate pose) observe nothing
+    # (their search finds no edge; a NaN row would spoil the whole system even at weight 0)
+    bad = ~np.isfinite(A).all(axis=1) | ~np.isfinite(off)
+    if bad.any():
+        A[bad], off, found = 0.0, np.where(bad, 0.0, off), found & ~bad
     scale = 1.4826 * float(np.median(np.abs(off[found]))) if found.any() else R_e
     c = max(options.tukey_min_px, 4.685 * scale)
     unit = options.edge_sample_weight / options.sigma_edge_px**2
