@@ -79,3 +79,40 @@ def test_without_the_chain_a_frame_seeing_one_wall_keeps_its_sliding_error() -> 
     dp, _ = _errors(res.poses, true)
     assert dp[0] < 0.05  # the corner frame: fully observed
     assert np.max(dp[4:]) > 0.1  # frames seeing the wall and the street: x is unobserved
+
+
+def test_block_registration_runs_per_frame_after_the_rigid_icp() -> None:
+    from workers.pipeline.reconstruction.dense_stereo import DenseCloud
+    from workers.pipeline.reconstruction.rgb_method import RgbRegistrationOptions, register_clouds_of_blocks
+
+    true, pts, rel, target, priors = _block(4)
+    P = np.concatenate([p.world_from_cam(x) for p, x in zip(priors, pts, strict=True)])
+    F = np.concatenate([np.full(len(x), a, np.int32) for a, x in enumerate(pts)])
+    pairs = tuple((a, b) for a, b, _, _ in rel)
+    tir = DenseCloud(P, F, pairs, len(rel), (), tuple((R, t, True) for _, _, R, t in rel))
+    rgb = DenseCloud(target, np.zeros(len(target), np.int32), (), 0, ())
+    opts = RgbRegistrationOptions()
+    reg = register_clouds_of_blocks(tir, rgb, priors, opts)
+    assert reg.accepted and reg.frame_icp is not None, reg.frame_reason
+    dp, dr = _errors(reg.poses, true)
+    assert np.median(dp) < 0.03 and np.max(dp) < 0.06, dp
+    assert np.max(dr) < 0.05, dr
+    f = reg.figures()
+    # every TIR point counted: after the per-frame step the cloud lies on the reference
+    assert f["mean_distance_after_m"] < 0.05 < 0.1 < f["rigid_mean_distance_after_m"]
+    rigid = register_clouds_of_blocks(tir, rgb, priors, RgbRegistrationOptions(per_frame=False))
+    dp_rigid, _ = _errors(rigid.poses, true)
+    assert np.median(dp_rigid) > 0.1  # one transform per block keeps the per-frame noise
+
+
+def test_orient_with_rgb_keeps_the_input_poses_when_nothing_matches() -> None:
+    from workers.pipeline.geometry.camera import Camera
+    from workers.pipeline.reconstruction.rgb_method import orient_with_rgb
+
+    cam = Camera(64, 48, 60.0, 60.0, 31.5, 23.5)
+    poses = [Pose(R_NORTH, ORIGIN + np.array([1.5 * i, -8.0, 1.5])) for i in range(6)]
+    blank_tir = np.full((48, 64), 280.0, np.float32)
+    blank_rgb = np.zeros((48, 64, 3), np.uint8)
+    reg = orient_with_rgb(lambda i: blank_tir, cam, poses, lambda j: blank_rgb, cam, poses)
+    assert not reg.accepted and "too few dense points" in reg.reason
+    assert all(p is q for p, q in zip(reg.poses, poses, strict=True))

@@ -4,7 +4,7 @@ In: a block of frames (`load(i)`: TIR `(H, W)` float32 kelvin with NaN = no data
 3)` uint8), its `Camera` (OpenCV model, pixel centres at integers) and one `Pose` per frame
 (`R_world_from_cam`, centre; world = model CRS, metres). Out: `DenseCloud`: points `(N, 3)`
 float64 world metres and, per point, the frame whose camera carries it (the pair's first camera),
-with per-pair figures.
+with per-pair figures and each pair's relative orientation (`x_b = R x_a + t`, metres).
 
 Per pair (frames `a`, `b` whose centres are `min_baseline_m` … `max_baseline_m` apart, one pair
 per frame at most): the relative orientation `b_from_a` from the poses, or, with
@@ -76,6 +76,7 @@ class DenseCloud:
     pairs: tuple[tuple[int, int], ...]
     refined: int
     points_per_pair: tuple[int, ...]
+    relative: tuple[tuple[np.ndarray, np.ndarray, bool], ...] = ()
 
 
 def to_gray8(image: np.ndarray) -> np.ndarray:
@@ -238,10 +239,11 @@ def dense_cloud(
 
     if options.smooth_positions:
         poses = anchored_poses(poses, smooth)
-    pts, owner, counts, refined = [], [], [], 0
+    pts, owner, counts, refined, rel = [], [], [], 0, []
     for a, b in pairs:
-        Xa, ok = _points(g, cam, poses, smooth, a, b, options)
+        Xa, ok, R_ab, t_ab = _points(g, cam, poses, smooth, a, b, options)
         refined += ok
+        rel.append((R_ab, t_ab, ok))
         if options.check_baseline_factor > 0:  # unchecked pairs (no second partner) are dropped
             c = _check_partner(smooth, a, b, options)
             Xc = _points(g, cam, poses, smooth, a, c, options)[0] if c is not None and len(Xa) else Xa[:0]
@@ -254,7 +256,7 @@ def dense_cloud(
     if not pts:
         return DenseCloud(np.zeros((0, 3)), np.zeros(0, np.int32), (), 0, ())
     P, F = _filtered(np.concatenate(pts), np.concatenate(owner), options)
-    return DenseCloud(P, F, tuple(pairs), refined, tuple(counts))
+    return DenseCloud(P, F, tuple(pairs), refined, tuple(counts), tuple(rel))
 
 
 def anchored_poses(poses: Sequence[Pose], centers: np.ndarray) -> list[Pose]:
@@ -265,16 +267,16 @@ def anchored_poses(poses: Sequence[Pose], centers: np.ndarray) -> list[Pose]:
 def _points(
     g: Callable[[int], np.ndarray], cam: Camera, poses: Sequence[Pose], smooth: np.ndarray,
     a: int, b: int, options: DenseOptions,
-) -> tuple[np.ndarray, bool]:  # fmt: skip
-    """Points `(N, 3)` of pair `(a, b)` in camera `a`'s frame and whether the relative
-    orientation came from the images (else from the poses)."""
+) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray]:  # fmt: skip
+    """Points `(N, 3)` of pair `(a, b)` in camera `a`'s frame, whether the relative
+    orientation came from the images (else from the poses), and that orientation (`R`, `t` m)."""
     R, t = _relative(poses[a], poses[b])
     ok = False
     if options.refine_relative:
         rel = refine_relative(g(a), g(b), cam, R, t, options)
         if rel is not None:
             R, t, ok = rel[0], rel[1] * float(np.linalg.norm(smooth[b] - smooth[a])), True
-    return pair_points(g(a), g(b), cam, R, t, options), ok
+    return pair_points(g(a), g(b), cam, R, t, options), ok, R, t
 
 
 def _check_partner(smooth: np.ndarray, a: int, b: int, options: DenseOptions) -> int | None:
