@@ -20,7 +20,8 @@ with ground control: 1 cm / 0.005° per frame). Prints JSON:
 - `cpu_s` / `wall_s` per step and the machine's load average.
 
 Usage: `python bench/orientation_rgb.py [--frames 48] [--buildings 3] [--seed 1] [--interval 0.25]
-[--look-up 10]` (a frame every 2 m: the drive passes several facade directions).
+[--look-up 10] [--per-frame] [--prior-direction] [--degeneracy-ratio R]` (a frame every 2 m: the
+drive passes several facade directions; the flags switch on the options of the same names).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -103,6 +105,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--look-up", type=float, default=10.0, help="camera tilt up, degrees")
     ap.add_argument("--interval", type=float, default=0.25, help="seconds between frames (8 m/s)")
+    ap.add_argument("--per-frame", action="store_true", help="RgbRegistrationOptions.per_frame")
+    ap.add_argument("--prior-direction", action="store_true", help="TIR DenseOptions.prior_direction")
+    ap.add_argument("--degeneracy-ratio", type=float, default=None, help="IcpOptions.degeneracy_ratio")
     a = ap.parse_args()
     _, blds = read_model(BUNDLED_MODEL)
     opts = SynthOptions(n_frames=a.frames, seed=a.seed, buildings=a.buildings, rgb=RgbOptions(),
@@ -114,7 +119,11 @@ def main() -> None:
     rgb_poses = rgb_prior_poses(m, None)
     (tir_imgs, c_tir_r, w_tir_r) = timed(lambda: [res.frames.load(i) for i in range(a.frames)])
     (rgb_imgs, c_rgb_r, w_rgb_r) = timed(lambda: [res.rgb.frames.load(i) for i in range(a.frames)])
-    o = RgbRegistrationOptions()
+    o = RgbRegistrationOptions(per_frame=a.per_frame)
+    if a.prior_direction:
+        o = replace(o, tir=replace(o.tir, prior_direction=True))
+    if a.degeneracy_ratio is not None:
+        o = replace(o, icp=replace(o.icp, degeneracy_ratio=a.degeneracy_ratio))
     tir, c_tir, w_tir = timed(dense_cloud, tir_imgs.__getitem__, m.camera, tir_priors, o.tir)
     rgb, c_rgb, w_rgb = timed(dense_cloud, rgb_imgs.__getitem__, m.rgb.camera, rgb_poses, o.rgb)
     placed = block_poses(tir_priors, o.tir)  # as `register_tir_on_rgb`: the poses the cloud was placed with
@@ -126,6 +135,8 @@ def main() -> None:
             "frame_rms_median_m")
     common = np.mean([p.center - t.center for p, t in zip(tir_priors, tr.poses, strict=True)], axis=0)
     out = {
+        "options": {"per_frame": a.per_frame, "prior_direction": a.prior_direction,
+                    "degeneracy_ratio": o.icp.degeneracy_ratio},
         "scene": {"model": Path(BUNDLED_MODEL).name, "frames": a.frames, "buildings": list(tr.cluster),
                   "seed": a.seed, "look_up_deg": a.look_up, "interval_s": a.interval,
                   "tir": [m.camera.width, m.camera.height],

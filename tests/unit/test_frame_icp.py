@@ -9,6 +9,10 @@ from workers.pipeline.reconstruction.dense_stereo import _relative
 from workers.pipeline.reconstruction.frame_icp import FrameIcpOptions, _exp, _log, register_frames
 
 ORIGIN = np.array([691000.0, 5334000.0, 35.0])  # UTM-sized coordinates
+#: the tests' relative orientations are exact: tied as tightly as the images would at best
+EXACT = FrameIcpOptions(
+    distances_m=(1.0, 0.5, 0.25, 0.1), relative_rotation_sigma_deg=0.05, relative_position_sigma_m=0.03
+)
 #: camera looking north (+y): x right = east, y down, z forward = north
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
@@ -65,7 +69,7 @@ def test_every_frame_is_corrected_with_the_chain() -> None:
     true, pts, rel, target, priors = _block(3)
     dp0, dr0 = _errors(priors, true)
     assert dp0.mean() > 0.3 and np.median(dr0) > 0.1  # the priors' errors: a few decimetres
-    res = register_frames(pts, priors, rel, target, FrameIcpOptions(distances_m=(1.0, 0.5, 0.25, 0.1)))
+    res = register_frames(pts, priors, rel, target, EXACT)
     dp, dr = _errors(res.poses, true)
     assert np.max(dp) < 0.05, dp  # every frame, also those seeing one wall only (held by the chain)
     assert np.median(dp) < 0.03
@@ -75,7 +79,7 @@ def test_every_frame_is_corrected_with_the_chain() -> None:
 
 def test_without_the_chain_a_frame_seeing_one_wall_keeps_its_sliding_error() -> None:
     true, pts, _, target, priors = _block(3)
-    res = register_frames(pts, priors, [], target, FrameIcpOptions(distances_m=(1.0, 0.5, 0.25, 0.1)))
+    res = register_frames(pts, priors, [], target, EXACT)
     dp, _ = _errors(res.poses, true)
     assert dp[0] < 0.05  # the corner frame: fully observed
     assert np.max(dp[4:]) > 0.1  # frames seeing the wall and the street: x is unobserved
@@ -91,7 +95,7 @@ def test_block_registration_runs_per_frame_after_the_rigid_icp() -> None:
     pairs = tuple((a, b) for a, b, _, _ in rel)
     tir = DenseCloud(P, F, pairs, len(rel), (), tuple((R, t, True) for _, _, R, t in rel))
     rgb = DenseCloud(target, np.zeros(len(target), np.int32), (), 0, ())
-    opts = RgbRegistrationOptions()
+    opts = RgbRegistrationOptions(per_frame=True, frames=EXACT)
     reg = register_clouds_of_blocks(tir, rgb, priors, opts)
     assert reg.accepted and reg.frame_icp is not None, reg.frame_reason
     dp, dr = _errors(reg.poses, true)

@@ -124,3 +124,25 @@ def test_sgm_on_a_rendered_pair_finds_the_facade(rendered_pair: tuple) -> None:
     depth = np.median(poses[a].cam_from_world(X)[:, 2])
     assert np.median(d) < 0.01 * depth  # within 1 % of the depth (~10 m): a few centimetres
     assert np.mean(d < 0.03 * depth) > 0.9
+
+
+def test_rotation_given_the_baseline_direction() -> None:
+    """Two views of a facade 15 m away, 2 m apart: with the baseline direction known, the
+    relative rotation comes back from 0.3 px-noisy matches to 0.02°, from a start 0.5° off."""
+    import cv2
+
+    from workers.pipeline.reconstruction.dense_stereo import rotation_given_direction
+
+    rng = np.random.default_rng(8)
+    depth = 15.0 + rng.uniform(-0.3, 0.3, 400)
+    X = np.column_stack([rng.uniform(-8, 8, 400), rng.uniform(-4, 4, 400), depth])
+    R = cv2.Rodrigues(np.radians([0.3, -0.8, 0.2]).reshape(3, 1))[0]
+    t = np.array([-2.0, 0.05, 0.1])  # x_b = R x_a + t
+    Xb = X @ R.T + t
+    f = 800.0
+    na = X[:, :2] / X[:, 2:] + rng.normal(0, 0.3 / f, (400, 2))
+    nb = Xb[:, :2] / Xb[:, 2:] + rng.normal(0, 0.3 / f, (400, 2))
+    R0 = cv2.Rodrigues(np.radians([0.3, -0.3, -0.2]).reshape(3, 1))[0] @ R
+    Rh = rotation_given_direction(na, nb, R0, t / np.linalg.norm(t), f)
+    err = np.degrees(np.linalg.norm(cv2.Rodrigues(Rh @ R.T)[0]))
+    assert err < 0.02 < 0.3 < np.degrees(np.linalg.norm(cv2.Rodrigues(R0 @ R.T)[0]))
