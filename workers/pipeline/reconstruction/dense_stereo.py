@@ -9,10 +9,11 @@ with per-pair figures and each pair's relative orientation (`x_b = R x_a + t`, m
 Per pair (frames `a`, `b` whose centres are `min_baseline_m` … `max_baseline_m` apart, one pair
 per frame at most): the relative orientation `b_from_a` from the poses, or, with
 `refine_relative`, from the images (SIFT matches, essential matrix with RANSAC, cheirality) with
-the baseline length of the smoothed trajectory (with `prior_direction`, also its direction and
-only the rotation from the images: `rotation_given_direction`) (per-frame GNSS/INS noise of 0.2 m would distort a
-1.5 m stereo base by 20 %; the smoothed positions keep its length to a few mm) — what makes prior
-poses with per-frame noise and vibration usable for stereo at all. With `smooth_positions`, each
+the baseline length of the smoothed trajectory (per-frame GNSS/INS noise of 0.2 m would distort
+a 1.5 m stereo base by 20 %; the smoothed positions keep its length to a few mm) — what makes
+prior poses with per-frame noise and vibration usable for stereo at all; with `prior_direction`
+also the smoothed baseline's direction, and only the rotation from the images
+(`rotation_given_direction`). With `smooth_positions`, each
 pair's points are also placed with the smoothed centre of its camera. Then `cv2.stereoRectify`,
 `cv2.StereoSGBM` on the rectified 8-bit images (TIR: stretched over its valid pixels, then CLAHE)
 and triangulation with the rectification's `Q`, in camera `a`'s frame, placed in the world with
