@@ -127,8 +127,11 @@ def test_sgm_on_a_rendered_pair_finds_the_facade(rendered_pair: tuple) -> None:
 
 
 def test_rotation_given_the_baseline_direction() -> None:
-    """Two views of a facade 15 m away, 2 m apart: with the baseline direction known, the
-    relative rotation comes back from 0.3 px-noisy matches to 0.02°, from a start 0.5° off."""
+    """Two views of a facade 15 m away, 2 m apart sideways: with the baseline direction known,
+    the relative roll and tilt come back from 0.3 px-noisy matches to 0.02°, from a start 0.3°
+    off. The pan (about the camera's y axis) moves points along the epipolar lines: on a nearly
+    fronto-parallel facade two views hardly observe it (it reads as a depth change), so it is
+    only checked not to get worse than the start."""
     import cv2
 
     from workers.pipeline.reconstruction.dense_stereo import rotation_given_direction
@@ -142,7 +145,9 @@ def test_rotation_given_the_baseline_direction() -> None:
     f = 800.0
     na = X[:, :2] / X[:, 2:] + rng.normal(0, 0.3 / f, (400, 2))
     nb = Xb[:, :2] / Xb[:, 2:] + rng.normal(0, 0.3 / f, (400, 2))
-    R0 = cv2.Rodrigues(np.radians([0.3, -0.3, -0.2]).reshape(3, 1))[0] @ R
+    start = np.array([0.3, -0.3, -0.2])  # degrees about the camera's x, y, z
+    R0 = cv2.Rodrigues(np.radians(start).reshape(3, 1))[0] @ R
     Rh = rotation_given_direction(na, nb, R0, t / np.linalg.norm(t), f)
-    err = np.degrees(np.linalg.norm(cv2.Rodrigues(Rh @ R.T)[0]))
-    assert err < 0.02 < 0.3 < np.degrees(np.linalg.norm(cv2.Rodrigues(R0 @ R.T)[0]))
+    err = np.abs(np.degrees(cv2.Rodrigues(Rh @ R.T)[0].ravel()))
+    assert err[0] < 0.02 and err[2] < 0.02, err  # tilt and roll
+    assert err[1] < abs(start[1]), err  # pan: weakly observed

@@ -176,7 +176,10 @@ def rotation_given_direction(
     five. On a street of facades the two-view translation direction and rotation trade off
     (a sideways baseline error looks like a turn); the smoothed trajectory's direction is known
     to about 1°, the essential matrix's rotation was measured 0.5° off on the bench's TIR pairs,
-    the rotation given the direction 0.24°."""
+    the rotation given the direction 0.24°. What stays weak: the pan about the axis normal to
+    the baseline and the viewing direction moves points along the epipolar lines; on a nearly
+    fronto-parallel facade two views barely observe it, and it biases the disparities (depth
+    error ≈ z² · pan / baseline): a multi-view adjustment is what fixes it."""
     from scipy.optimize import least_squares
 
     ha, hb = np.column_stack([na, np.ones(len(na))]), np.column_stack([nb, np.ones(len(nb))])
