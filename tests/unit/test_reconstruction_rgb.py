@@ -151,3 +151,24 @@ def test_rotation_given_the_baseline_direction() -> None:
     err = np.abs(np.degrees(cv2.Rodrigues(Rh @ R.T)[0].ravel()))
     assert err[0] < 0.02 and err[2] < 0.02, err  # tilt and roll
     assert err[1] < abs(start[1]), err  # pan: weakly observed
+
+
+def test_icp_uses_directions_few_points_observe() -> None:
+    """A street: 90 % of the points on one facade, 5 % on a side wall, 5 % on the street. The
+    side wall and the street (about 5 % of the normals' scatter each) fix the shift along the
+    facade and the height: all three components come back, not the facade normal only."""
+    rng = np.random.default_rng(9)
+
+    def street(n: int) -> np.ndarray:
+        u = rng.uniform(0, 1, (n, 2))
+        k = rng.choice(3, n, p=[0.9, 0.05, 0.05])
+        P = np.zeros((n, 3))
+        P[k == 0] = np.column_stack([u[k == 0, 0] * 40, np.zeros((k == 0).sum()), u[k == 0, 1] * 12])
+        P[k == 1] = np.column_stack([np.zeros((k == 1).sum()), -u[k == 1, 0] * 8, u[k == 1, 1] * 12])
+        P[k == 2] = np.column_stack([u[k == 2, 0] * 40, -u[k == 2, 1] * 8, np.zeros((k == 2).sum())])
+        return P + ORIGIN + 0.02 * rng.standard_normal((n, 3))
+
+    truth = np.array([0.8, -0.5, 0.6])
+    res = register_clouds(street(30_000) - truth, street(40_000))
+    assert np.max(np.abs(res.target_from_source[:3, 3] - truth)) < 0.03, res.target_from_source[:3, 3]
+    assert res.observed_directions == 3
