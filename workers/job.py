@@ -37,6 +37,7 @@ import numpy as np
 from db.citygml.reader import iter_buildings, read_header
 from db.results_folder.write import write_results_folder
 from db.sequence_package import open_package
+from workers.orient_rgb import rgb_registered
 from workers.pipeline.geometry.citymodel import Building, ModelHeader
 from workers.pipeline.geometry.georef import prior_poses
 from workers.pipeline.geometry.manifest import Accuracy, FrameSource, Mounting, Radiometry, SequenceManifest
@@ -325,7 +326,10 @@ def orient(
     times = dict(zip(frames, ingested.times, strict=True))
     try:
         caster = caster if caster is not None else scene_caster(ingested)
-        prior = dict(zip(frames, calibrated.priors, strict=True))
+        start, rgb = list(calibrated.priors), None
+        if options.rgb:  # method 3: the block onto the RGB camera's cloud (`workers.orient_rgb`)
+            start, rgb = rgb_registered(ingested, start)
+        prior = dict(zip(frames, start, strict=True))
         so = None  # `sfm`: the reconstruction alone
         if options.orientation != "sfm":
             wf = scene_wireframe(caster, SequenceOrientationOptions().coregister.edges) if caster else None
@@ -341,6 +345,8 @@ def orient(
     except Exception as exc:  # reported in report.json: the job goes on
         return Oriented(None, {"run": False, "reason": f"failed: {type(exc).__name__}: {exc}"})
     report = so.to_dict("calibrated" if calibrated.accepted else "manifest")
+    if rgb is not None:
+        report["rgb"] = rgb
     return Oriented(so, {"run": True, **report, **method})
 
 

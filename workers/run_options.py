@@ -34,6 +34,10 @@ class RunOptions:
             the GNSS/INS and coregistered to the facades (`reconstruction`, Hoegner & Stilla's
             method 1), `"both"` the edge path's poses where its blocks confirmed them and the
             reconstruction's for the frames it left unoriented.
+        rgb: in the orient stage, first register the TIR block onto the dense cloud of the
+            package's RGB camera (`rgb_camera`; Hoegner & Stilla's method 3, `workers.orient_rgb`):
+            the sequence orientation then starts from the registered poses (when the ICP is
+            accepted); `report.json` `sequence_orientation.rgb`. Off by default (costly).
         buildings: ids of the top-level buildings to texture (None: all the sequence sees).
         workers: processes for the building units in one process (`citytherm run`; 1: in this
             process).
@@ -48,6 +52,7 @@ class RunOptions:
     calibrate: bool = True
     orient: bool = True
     orientation: Literal["edges", "sfm", "both"] = "edges"
+    rgb: bool = False
     buildings: tuple[str, ...] | None = None
     workers: int = 1
     display: bool = True

@@ -107,6 +107,11 @@ class TextureInputs(BaseModel):
         "own reconstruction, coregistered to the facades) or both (edges where confirmed, the "
         "reconstruction elsewhere).",
     )
+    rgb: bool = Field(
+        _DEFAULTS.rgb,
+        description="With the sequence orientation: first register the TIR block onto the dense cloud "
+        "of the sequence's RGB camera (rgb_camera; method 3, costly).",
+    )
     anomalies: bool = Field(
         True, description="Analyse the textures: windows, heat-leak candidates, facade figures."
     )
@@ -120,6 +125,7 @@ class TextureInputs(BaseModel):
             calibrate=self.calibrate,
             orient=self.orient,
             orientation=self.orientation,
+            rgb=self.rgb,
             anomalies=self.anomalies,
             buildings=tuple(self.buildings) if self.buildings else None,
         )

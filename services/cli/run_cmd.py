@@ -159,6 +159,13 @@ def run(
         "sequence's own pycolmap reconstruction placed on the GNSS/INS and coregistered to the "
         "facades; both = edges where confirmed, the reconstruction for the frames they leave.",
     ),
+    rgb: bool = typer.Option(
+        False,
+        "--rgb",
+        help="With the sequence orientation: first register the TIR block onto the dense cloud of "
+        "the package's RGB camera (rgb_camera; Hoegner & Stilla's method 3; about 2 CPU minutes "
+        "per 50 frames). report.json: sequence_orientation.rgb.",
+    ),
     no_display: bool = typer.Option(False, "--no-display", help="Skip the 8-bit <theme>-display copies."),
     no_anomalies: bool = typer.Option(
         False,
@@ -204,6 +211,7 @@ def run(
         calibrate=not no_calibrate,
         orient=not no_orient,
         orientation=orientation.value,
+        rgb=rgb,
         display=not no_display,
         split_half=split_half,
     )

@@ -46,7 +46,7 @@ def test_landing_conformance_processes_openapi(api: ApiServer) -> None:
         desc = c.get("/processes/texture").json()
         assert set(desc["inputs"]) == {
             "model", "sequence", "theme", "resolution", "buildings", "refine", "calibrate", "orient",
-            "orientation", "anomalies",
+            "orientation", "rgb", "anomalies",
         }  # fmt: skip
         assert desc["inputs"]["orientation"]["schema"]["enum"] == ["edges", "sfm", "both"]
         assert desc["inputs"]["model"]["minOccurs"] == 1 and desc["inputs"]["theme"]["minOccurs"] == 0
