@@ -60,6 +60,10 @@ class ReconstructionOptions:
             priors (common error of the accuracy's σ, per-frame noise of `frame_sigma_deg`,
             `frame_sigma_m`) (`plane_adjust.adjust_on_planes`); its result is kept when the
             adjustment converged and the ties' RMS stays within `plane_adjust_max_sigma0_px`.
+            Only where the facades fix both horizontal shift directions (`min_normal_spread`):
+            on one facade the adjustment leaves the in-plane shift, the scale and the turn about
+            the normal to the per-frame priors, which bend the block instead (the one-facade
+            walk of `tests/unit/test_reconstruction_sfm.py`: max 3.6 → 5.1 px).
         plane_sigma_m: σ of a point's distance from its model plane in that adjustment.
         plane_adjust_tie_sigma_px: σ of a tie observation there (Huber at twice it).
         min_normal_spread: the facades fix both horizontal shift directions when the smallest

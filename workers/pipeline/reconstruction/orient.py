@@ -16,7 +16,7 @@ assigned to the model's facade planes and the similarity corrected by their dist
 (`planes.fit_planes`) → every registered frame's pose through the final similarity → the block
 adjusted once more with the facade points held to their planes and the priors as a common
 error plus per-frame noise (`plane_adjust.adjust_on_planes`: what bent the block, one similarity
-cannot remove).
+cannot remove; where the facades fix both horizontal directions, `options.plane_adjustment`).
 
 Why the LK tracks and not pycolmap's SIFT: on the one-facade sequence (`bench/orientation_sfm.py`,
 `features_on_tir`, 40 frames) the LK tracks give 1013 observations of which 875 lie within 1 px
@@ -242,15 +242,15 @@ def _place(
     final = placed if fit is None else placed.then(fit.correction)
     out_poses = final.poses(rec_poses)
     Xm = final.points(adj.points)
+    spread = 0.0 if fit is None else normals_span(fit.assignment.normal)
+    spans = bool(spread >= options.min_normal_spread)
     pa = None
-    if fit is not None and options.plane_adjustment:
+    if fit is not None and spans and options.plane_adjustment:
         pa = adjust_on_planes(
             camera, caster, adj, out_poses, Xm, fit.assignment, prior, sig_m, sig_deg, options
         )
         if pa is not None:
             out_poses, Xm = pa.poses, pa.points
-    spread = 0.0 if fit is None else normals_span(fit.assignment.normal)
-    spans = bool(spread >= options.min_normal_spread)
     place_cov = np.zeros((6, 6)) if fit is None else _pose_block(fit.covariance)
     cov = {f: _resection_covariance(camera, p, Xm, adj, f) + place_cov for f, p in out_poses.items()}
     return {
