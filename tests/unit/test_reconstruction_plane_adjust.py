@@ -93,6 +93,7 @@ def test_plane_adjustment_removes_a_bending_of_the_block() -> None:
     assert max(before) > 0.15
     # 1 px of this camera is 0.073°: every frame within 0.7 px, most within 0.2 px (measured 0.034°, 0.008°)
     assert max(after) < 0.05 and np.median(after) < 0.015, np.round(after, 3)
-    assert max(np.linalg.norm(out.poses[k].center - truth[k].center) for k in range(n)) < 0.05  # measured 0.036
+    centre_err = [np.linalg.norm(out.poses[k].center - truth[k].center) for k in range(n)]
+    assert max(centre_err) < 0.05  # measured 0.036: the in-plane shift is the priors' mean
     assert out.point_to_plane_rms_m < 0.01
     assert out.tie_rms_px < 0.1

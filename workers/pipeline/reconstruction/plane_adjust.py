@@ -11,7 +11,9 @@ the middle while the centres are within 2 cm: the frames at the start miss the m
 about its centre moves the intersections of its rays in depth as well as along the facade), so
 the block adjustment of the sequence orientation (`orientation.bundle.bundle_adjust`: tie points,
 model-plane distances, the priors as a common error plus per-frame noise; no model edges) is run
-seeded from the coregistered poses and points.
+seeded from the coregistered poses and points. `orient` runs it only where the facades fix both
+horizontal shift directions: on a single facade the in-plane shift, the scale and the turn about
+its normal are left to the per-frame priors, whose noise then bends the block instead.
 
 In: the reconstruction's `Adjusted` part, its coregistered poses and points (model CRS), the
 `PlaneAssignment` of the facade fit, the (calibrated) priors with their a-priori σ.
