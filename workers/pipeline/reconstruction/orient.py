@@ -13,7 +13,10 @@ smoothed priors) → triangulation from those poses and pycolmap's bundle adjust
 (`colmap.reconstruct`) → the 7-parameter similarity onto the GNSS/INS (`similarity.place_on_priors`:
 rotation from the attitudes, scale and shift from the centres) → the reconstructed points
 assigned to the model's facade planes and the similarity corrected by their distances
-(`planes.fit_planes`) → every registered frame's pose through the final similarity.
+(`planes.fit_planes`) → every registered frame's pose through the final similarity → the block
+adjusted once more with the facade points held to their planes and the priors as a common
+error plus per-frame noise (`plane_adjust.adjust_on_planes`: what bent the block, one similarity
+cannot remove; where the facades fix both horizontal directions, `options.plane_adjustment`).
 
 Why the LK tracks and not pycolmap's SIFT: on the one-facade sequence (`bench/orientation_sfm.py`,
 `features_on_tir`, 40 frames) the LK tracks give 1013 observations of which 875 lie within 1 px
@@ -42,6 +45,7 @@ from workers.pipeline.orientation.smoothing import prior_noise, smooth_poses
 from workers.pipeline.orientation.tracks import Tracks, track_sequence
 from workers.pipeline.reconstruction.colmap import Adjusted, components, reconstruct
 from workers.pipeline.reconstruction.options import ReconstructionOptions
+from workers.pipeline.reconstruction.plane_adjust import adjust_on_planes
 from workers.pipeline.reconstruction.planes import fit_planes, normals_span
 from workers.pipeline.reconstruction.similarity import Similarity, place_on_priors
 
@@ -240,6 +244,13 @@ def _place(
     Xm = final.points(adj.points)
     spread = 0.0 if fit is None else normals_span(fit.assignment.normal)
     spans = bool(spread >= options.min_normal_spread)
+    pa = None
+    if fit is not None and spans and options.plane_adjustment:
+        pa = adjust_on_planes(
+            camera, caster, adj, out_poses, Xm, fit.assignment, prior, sig_m, sig_deg, options
+        )
+        if pa is not None:
+            out_poses, Xm = pa.poses, pa.points
     place_cov = np.zeros((6, 6)) if fit is None else _pose_block(fit.covariance)
     cov = {f: _resection_covariance(camera, p, Xm, adj, f) + place_cov for f, p in out_poses.items()}
     return {
@@ -253,6 +264,7 @@ def _place(
         "plane_points": 0 if fit is None else len(fit.assignment.index),
         "point_to_plane_rms_m_before": None if fit is None else round(fit.rms_before_m, 3),
         "point_to_plane_rms_m_after": None if fit is None else round(fit.rms_after_m, 3),
+        "plane_adjustment": None if pa is None else pa.to_dict(),
         "normal_spread": round(spread, 4),
         "facades_fix_horizontal": spans,
         "_result": (out_poses, cov, _tracks(adj, Xm), spans),
