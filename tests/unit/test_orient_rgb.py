@@ -41,23 +41,32 @@ def test_without_an_rgb_camera_the_poses_stay(drive) -> None:
     assert all(p is q for p, q in zip(poses, ing.priors, strict=True))
 
 
-def test_orient_stage_registers_on_the_rgb_block_and_reports_it(drive) -> None:
-    """The orient stage with `rgb=True` runs the registration from the calibrated priors and
-    reports its figures; accepted or not, the poses it hands on are the input moved by the
-    reported rigid transform (identity when refused)."""
+def test_orient_stage_registers_on_the_rgb_block_and_reports_it(drive, monkeypatch) -> None:
+    """The orient stage with `rgb=True` runs the registration from the calibrated priors (the
+    real `rgb_registered`, observed on its way through), reports its figures, and the sequence
+    orientation starts from the poses it hands on: the input moved by the reported rigid
+    transform (identity when refused)."""
     _, with_rgb, _ = drive
     options = RunOptions.build(rgb=True)
     ing = job.ingest(BUNDLED_MODEL, with_rgb, options)
     calibrated = job.calibrate(ing, options)
-    start, fig = rgb_registered(ing, list(calibrated.priors))
+    seen: list = []
+
+    def observed(ingested, poses):  # the shipped step, its input and output recorded
+        out = rgb_registered(ingested, poses)
+        seen.append((list(poses), out))
+        return out
+
+    monkeypatch.setattr(job, "rgb_registered", observed)
+    oriented = job.orient(ing, calibrated, options)
+    assert oriented.report["run"] is True, oriented.report
+    assert len(seen) == 1
+    given, (start, fig) = seen[0]
+    assert all(p is q for p, q in zip(given, calibrated.priors, strict=True))
     assert {"accepted", "reason", "points_tir", "points_rgb", "transform"} <= set(fig), fig
+    assert oriented.report["rgb"] == fig
     T = np.asarray(fig["transform"])
     for p, q in zip(start, calibrated.priors, strict=True):
         assert np.allclose(p.R_world_from_cam, T[:3, :3] @ q.R_world_from_cam, atol=1e-9)
         if not fig["accepted"]:
             assert np.allclose(p.center, q.center)
-    oriented = job.orient(ing, calibrated, options)
-    assert oriented.report["run"] is True, oriented.report
-    again = oriented.report["rgb"]
-    assert again["accepted"] == fig["accepted"], (again, fig)
-    assert np.allclose(again["transform"], fig["transform"], atol=1e-6)
