@@ -61,6 +61,8 @@ FEATURES_CONFORMANCE = [
 ]
 GEOJSON = "application/geo+json"
 STREAM_ABOVE = 1000
+#: the opening of every items page, before its features
+_HEAD = b'{"type":"FeatureCollection","features":['
 
 
 class NoSuchCollectionError(NotFoundError):
@@ -191,8 +193,7 @@ def items_document(
         more_after=more if forward else True,
         more_before=cur is not None if forward else more,
     )  # fmt: skip
-    head = b'{"type":"FeatureCollection","features":['
-    return iter([b"".join((head, ",".join([r[1] for r in rows]).encode(), tail))]), q.crs, False
+    return iter([b"".join((_HEAD, ",".join([r[1] for r in rows]).encode(), tail))]), q.crs, False
 
 
 def _tail(
@@ -243,7 +244,7 @@ def _chunks(
     """A streamed forward page: the FeatureCollection of `result`'s rows (key, feature JSON
     text; the first `q.limit`), then its tail; closes `db` at the end."""
     try:
-        yield b'{"type":"FeatureCollection","features":['
+        yield _HEAD
         n, first, last, more_after = 0, None, None, False
         buf: list[str] = []
         for k, f in result:
