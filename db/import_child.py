@@ -1,8 +1,9 @@
 """The reader process of an import (`db.import_stream`): it parses a CityGML file, or one part of
 a split file, and sends the transformed batches as length-prefixed pickles on its standard output.
 
-In: its settings (a pickle) on standard input, then the transform (a pickle, read when the first
-batch is parsed: the importer sends it once it knows the database SRID). Out: frames
+In: its settings (a pickle, base64, as its argument), the transform (a pickle on standard input,
+read when the first batch is parsed: the importer sends it once it knows the database SRID; until
+then the reader parses up to `AHEAD` batches ahead). Out: frames
 `(kind, object)`: ("count", n) first for the first part of a split file (its buildings and parts
 as estimated from its bytes, `db.import_split.scan_part`), ("batch", transform(buildings)) per
 batch of top-level buildings, ("appearance", Appearance) for CityModel-level appearances after
@@ -22,6 +23,7 @@ import contextlib
 import dataclasses
 import os
 import pickle
+import select
 import signal
 import struct
 import sys
@@ -81,22 +83,44 @@ def _events(path: Path, huge_tree: bool, part: _Part | None = None) -> Iterator[
             yield kind, obj
 
 
+#: full batches a reader parses ahead while the importer has not sent the transform yet
+AHEAD = 4
+
+
 def batches(
     path: Path,
     huge_tree: bool,
     batch_size: int,
     transform: Callable[[list[Building]], Any],
     part: _Part | None = None,
+    ready: Callable[[], bool] | None = None,
 ) -> Iterator[tuple[str, Any]]:
+    """("batch", transform(buildings)) per `batch_size` top-level buildings and ("appearance",
+    Appearance) as `_events` gives them, in document order. `ready` (optional) says whether
+    `transform` can run without waiting (the importer has sent it): until then up to `AHEAD` full
+    batches are held and parsing goes on, so that the reader does not sit idle while the importer
+    starts."""
     pending: list[Building] = []
+    held: list[list[Building]] = []
     for kind, obj in _events(path, huge_tree, part):
         if kind == "appearance":
+            for h in held:
+                yield "batch", transform(h)
+            held = []
             yield kind, obj
             continue
         pending.append(obj)
         if len(pending) >= batch_size:
-            yield "batch", transform(pending)
+            if ready is not None and len(held) < AHEAD and not ready():
+                held.append(pending)
+            else:
+                for h in held:
+                    yield "batch", transform(h)
+                held = []
+                yield "batch", transform(pending)
             pending = []
+    for h in held:
+        yield "batch", transform(h)
     if pending:
         yield "batch", transform(pending)
 
@@ -159,6 +183,16 @@ class _LateTransform:
         self._src = src
         self._fn: Callable[[list[Building]], Any] | None = None
 
+    def ready(self) -> bool:
+        """True when the transform is here, or its bytes are waiting on standard input (a call
+        would then not wait for the importer)."""
+        if self._fn is not None:
+            return True
+        try:
+            return bool(select.select([self._src.fileno()], [], [], 0)[0])
+        except (OSError, ValueError):  # not a file descriptor select can watch: do not wait
+            return True
+
     def __call__(self, buildings: list[Building]) -> Any:
         if self._fn is None:
             self._fn = pickle.load(self._src)
@@ -189,7 +223,7 @@ def child_main(cfg: dict[str, Any]) -> None:
             os._exit(0)
         if part.estimate is not None:
             _send(out, ("count", part.estimate))
-        for item in batches(path, cfg["huge_tree"], cfg["batch_size"], transform, part):
+        for item in batches(path, cfg["huge_tree"], cfg["batch_size"], transform, part, transform.ready):
             _send(out, item)
         _send(out, ("done", (_peak_rss_mb(), part.count, _cpu_s())))
     except (BrokenPipeError, KeyboardInterrupt):  # the importer is gone or stopped us

@@ -37,6 +37,7 @@ as the single one does. The readers can be started before the transform is known
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import dataclasses
 import logging
@@ -64,11 +65,13 @@ __all__ = ["BatchStream", "prestart"]
 
 log = logging.getLogger(__name__)
 
-#: the reader process's program: settings (a pickle) on standard input, then the transform (a
-#: pickle, read when the first batch is parsed); frames on standard output.
+#: the reader process's program: settings (a pickle, base64) as its argument, the transform (a
+#: pickle, read when the first batch is parsed) on standard input, which carries nothing else (so
+#: that the reader can see whether it has come: `db.import_child.batches`); frames on standard
+#: output.
 _CHILD = (
-    "import pickle, sys; cfg = pickle.load(sys.stdin.buffer); sys.path[:0] = cfg['sys_path']; "
-    "from db.import_child import child_main; child_main(cfg)"
+    "import base64, pickle, sys; cfg = pickle.loads(base64.b64decode(sys.argv[1])); "
+    "sys.path[:0] = cfg['sys_path']; from db.import_child import child_main; child_main(cfg)"
 )
 
 
@@ -164,16 +167,11 @@ class BatchStream:
             "batch_size": self.batch_size,
             **part,
         }
+        arg = base64.b64encode(pickle.dumps(cfg)).decode("ascii")
         proc = subprocess.Popen(
-            [sys.executable, "-c", _CHILD], stdin=subprocess.PIPE, stdout=stdout, close_fds=True
+            [sys.executable, "-c", _CHILD, arg], stdin=subprocess.PIPE, stdout=stdout, close_fds=True
         )
         self._procs.append(proc)
-        assert proc.stdin is not None
-        try:
-            proc.stdin.write(pickle.dumps(cfg))
-            proc.stdin.flush()
-        except BrokenPipeError:  # it died at once: reported by the first read
-            pass
         self._waiting.append(proc)
         self._send_transform()
         return proc

@@ -21,6 +21,7 @@ exterior, 1.. for the interiors); `_g` is appended until the id is unused in the
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -108,6 +109,8 @@ class _Draft:
     envelope_srs: str | None = None
 
 
+#: one or more plain NCNames (`get_id` keeps them as they are), one a line
+_PLAIN_IDS = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*(?:\n[A-Za-z_][A-Za-z0-9_.\-]*)*")
 _MEMBER_TAGS = frozenset({f"{{{GML_NS}}}surfaceMember", f"{{{GML32_NS}}}surfaceMember"})
 _POLYGON_TAGS = frozenset({f"{{{GML_NS}}}Polygon", f"{{{GML32_NS}}}Polygon"})
 _LINEAR_RING_TAGS = frozenset({f"{{{GML_NS}}}LinearRing", f"{{{GML32_NS}}}LinearRing"})
@@ -196,26 +199,62 @@ def _draft_kind(tag: str) -> int:
 class _BuildingReader:
     """Reads one top-level building element (and its parts) into a `Building`."""
 
-    def __init__(self, id_attr: str, default_srs: str | None, surface_registry: Mapping[str, SurfaceData]):
+    def __init__(
+        self,
+        id_attr: str,
+        default_srs: str | None,
+        surface_registry: Mapping[str, SurfaceData],
+        unchecked_ids: bool = False,
+    ):
         self.id_attr = id_attr
         self.default_srs = default_srs
         self.global_sd = surface_registry
         self.scope = _Scope()
         self.local_sd: dict[str, SurfaceData] = {}
+        #: `unchecked_ids`: ids and local references are taken as written and collected here, to
+        #: be checked at once (`ids_plain`) before they are used; None: each mapped as it is read
+        self.raw_ids: list[str] | None = [] if unchecked_ids else None
+
+    def _id(self, el: etree._Element) -> str | None:
+        """`get_id` of `el`, or (unchecked mode) its `gml:id` as written, collected in `raw_ids`."""
+        raw = self.raw_ids
+        if raw is None:
+            return get_id(el, self.id_attr)
+        value = el.get(self.id_attr)
+        if not value:
+            return None
+        raw.append(value)
+        return value
+
+    def _ref(self, href: str) -> str:
+        """`ref_id` of an `xlink:href`, or (unchecked mode) a local reference's id as written."""
+        raw = self.raw_ids
+        if raw is None or href[:1] != "#":
+            return ref_id(href)
+        value = href[1:]
+        raw.append(value)
+        return value
+
+    def ids_plain(self) -> bool:
+        """True when every id taken unchecked is a plain NCName (ASCII letters, digits, `_.-`, not
+        starting with a digit, `.` or `-`): `get_id` and `ref_id` return such an id unchanged, so
+        the building read is the one a checked read gives."""
+        raw = self.raw_ids
+        return not raw or _PLAIN_IDS.fullmatch("\n".join(raw)) is not None
 
     # ---- geometry -------------------------------------------------------------------------
     def _polygon(self, el: etree._Element, d: _Draft, ctx: tuple, dim: int) -> None:
         """Record a `gml:Polygon` (or patch) `el`: its rings `(N, 3)` (exterior first; reversed
         when `ctx`'s sign is -1), ids and context (`_geometry`); `dim`: the srsDimension in force."""
         cls, sid, lod, in_solid, coll, sign = ctx
-        id_attr, scope = self.id_attr, self.scope
+        scope = self.scope
         rings: list[tuple[str | None, np.ndarray]] = []
         interiors: list[tuple[str | None, np.ndarray]] = []
-        for ch in el:
+        for ch in el[:]:
             role = _RING_ROLES.get(ch.tag)
             if role is None:
                 continue
-            for ring in ch:
+            for ring in ch[:]:
                 tag = ring.tag
                 if tag not in _LINEAR_RING_TAGS:
                     if isinstance(tag, str):
@@ -224,13 +263,13 @@ class _BuildingReader:
                 coords = ring_coords(ring, dim)
                 if sign < 0:
                     coords = coords[::-1].copy()
-                rid = get_id(ring, id_attr)
+                rid = self._id(ring)
                 if rid:
                     scope.ids.add(rid)
                 (rings if role else interiors).append((rid, coords))
         if len(rings) != 1:
             raise CityGMLError(f"<{local(el.tag)}> needs exactly one exterior ring", line=el.sourceline)
-        pid = get_id(el, id_attr)
+        pid = self._id(el)
         rec = _PolyRec(pid, rings + interiors if interiors else rings, cls, lod, sid, in_solid, coll)
         d.polys.append(rec)
         if pid:
@@ -243,7 +282,7 @@ class _BuildingReader:
         """Walk a geometry subtree; `ctx` = (class, surface id, lod, in_solid, collection id, sign)."""
         href = el.get(XLINK_HREF)
         if href is not None:
-            self.scope.refs.append((ref_id(href), ctx[3], ctx[5], el.sourceline))
+            self.scope.refs.append((self._ref(href), ctx[3], ctx[5], el.sourceline))
             return
         ln = local(el.tag)
         if not ln or ln in _SKIP_GEOM:
@@ -263,19 +302,19 @@ class _BuildingReader:
         elif ln == "Solid":
             in_solid = True
         elif ln in ("MultiSurface", "CompositeSurface", "Shell", "Surface", "TriangulatedSurface"):
-            gid = get_id(el, self.id_attr)
+            gid = self._id(el)
             if gid:
                 coll = gid
                 self.scope.ids.add(gid)
         ctx = (cls, sid, lod, in_solid, coll, sign)
-        for ch in el:
+        for ch in el[:]:
             tag = ch.tag
             if tag in _MEMBER_TAGS:  # fast path: surfaceMember -> href or Polygon
                 href = ch.get(XLINK_HREF)
                 if href is not None:
-                    self.scope.refs.append((ref_id(href), in_solid, sign, ch.sourceline))
+                    self.scope.refs.append((self._ref(href), in_solid, sign, ch.sourceline))
                     continue
-                for g in ch:
+                for g in ch[:]:
                     gtag = g.tag
                     if gtag in _POLYGON_TAGS and g.get("srsName") is None and g.get("srsDimension") is None:
                         self._polygon(g, d, ctx, dim)
@@ -293,18 +332,18 @@ class _BuildingReader:
         if el.get(XLINK_HREF) is not None:
             self._geometry(el, d, ctx, 3)
             return True
-        for g in el:  # the property's geometry (a property element carries no srsName)
+        for g in el[:]:  # the property's geometry (a property element carries no srsName)
             if isinstance(g.tag, str):
                 self._geometry(g, d, ctx, 3)
         return True
 
     def _boundary(self, prop: etree._Element, d: _Draft) -> None:
-        for surf in prop:
+        for surf in prop[:]:
             ln = local(surf.tag)
             if not ln:
                 continue
             cls = BOUNDARY_CLASSES.get(ln, "unclassified")
-            sid = get_id(surf, self.id_attr)
+            sid = self._id(surf)
             if sid:
                 self.scope.ids.add(sid)
             for ch in surf:  # geometry properties among the surface's attributes
@@ -313,8 +352,8 @@ class _BuildingReader:
                     self._geom_property(ch, d, cls, sid)
 
     def _installation(self, prop: etree._Element, d: _Draft) -> None:
-        for inst in prop:
-            for ch in inst:
+        for inst in prop[:]:
+            for ch in inst[:]:
                 if not isinstance(ch.tag, str):
                     continue
                 if local(ch.tag) in ("boundedBy", "boundary") and not _is_gml(ch.tag):
@@ -326,13 +365,13 @@ class _BuildingReader:
     def _generic(self, el: etree._Element, d: _Draft, prefix: str = "") -> None:
         ln = local(el.tag)
         if ln == "genericAttribute":  # CityGML 3.0 wrapper
-            for ch in el:
+            for ch in el[:]:
                 if isinstance(ch.tag, str):
                     self._generic(ch, d, prefix)
             return
         if ln in ("genericAttributeSet", "GenericAttributeSet"):
             name = el.get("name") or next((c.text for c in el if local(c.tag) == "name"), "") or ""
-            for ch in el:
+            for ch in el[:]:
                 if local(ch.tag) not in ("name", "value"):
                     self._generic(ch, d, f"{prefix}{name.strip()}.")
             return
@@ -341,7 +380,7 @@ class _BuildingReader:
             return
         name = el.get("name")
         value_el = None
-        for ch in el:
+        for ch in el[:]:
             cl = local(ch.tag)
             if cl == "name" and name is None:
                 name = (ch.text or "").strip()
@@ -374,7 +413,7 @@ class _BuildingReader:
         self.scope.ids.add(bid)
         n_parts = 0
         kinds = _DRAFT_KIND
-        for ch in el:
+        for ch in el[:]:
             tag = ch.tag
             if not isinstance(tag, str):
                 continue
@@ -400,13 +439,13 @@ class _BuildingReader:
             elif kind == _D_NAME:
                 d.name = d.name if d.name is not None else (ch.text or "").strip()
             elif kind == _D_APPEARANCE:
-                for app in ch:
+                for app in ch[:]:
                     if local(app.tag) == "Appearance":
                         d.appearances.append(parse_appearance(app, self.id_attr, self.local_sd, d.id))
             elif kind == _D_PARTS:
-                for part in ch:
+                for part in ch[:]:
                     if local(part.tag) == "BuildingPart":
-                        pid = get_id(part, self.id_attr)
+                        pid = self._id(part)
                         n_parts += 1
                         gen = not pid
                         d.parts.append(self.draft(part, pid or f"{bid}_part{n_parts}", gen, bid))
@@ -445,7 +484,9 @@ class _BuildingReader:
                     solid_reversed=rec.solid_reversed,
                 )
             )
-        registry: MutableMapping[str, SurfaceData] = {**self.global_sd, **self.local_sd}
+        registry: MutableMapping[str, SurfaceData] = {}
+        if d.appearances:
+            registry = {**self.global_sd, **self.local_sd}
         return Building(
             id=d.id,
             polygons=tuple(polys),
@@ -490,8 +531,15 @@ def read_building(
         default_srs: the model's `srsName`, used when the building's geometry names none.
         surface_registry: model-level surface data by id (for `xlink:href` from local appearances).
     """
-    reader = _BuildingReader(id_attr, default_srs, surface_registry or {})
-    bid = get_id(el, id_attr)
+    registry = surface_registry or {}
+    # ids are checked all at once after the walk (the usual file: every id a plain NCName); a
+    # building with any other id is read again with each id mapped as it is read
+    reader = _BuildingReader(id_attr, default_srs, registry, unchecked_ids=True)
+    bid = reader._id(el)
     draft = reader.draft(el, bid or fallback_id, not bid, None)
+    if not reader.ids_plain():
+        reader = _BuildingReader(id_attr, default_srs, registry)
+        bid = reader._id(el)
+        draft = reader.draft(el, bid or fallback_id, not bid, None)
     reader.resolve()
     return reader.build(draft, None)

@@ -214,6 +214,29 @@ def test_xlink_forward_and_backward(tmp_path: Path) -> None:
     assert [p.surface_id for p in b.polygons] == ["W1", "R1", "G1"]
 
 
+def test_ids_that_are_not_ncnames_are_mapped_everywhere(tmp_path: Path) -> None:
+    """A building with ids that are not NCNames (read again with each id mapped as it is read,
+    `read_building`) gets the ids a plain building would, its references resolved through the
+    mapped ids; the next building (plain ids) is read as usual."""
+    solid = (
+        "<bldg:lod2Solid><gml:Solid><gml:exterior><gml:CompositeSurface>"
+        '<gml:surfaceMember xlink:href="#9P1"/><gml:surfaceMember xlink:href="#P2"/>'
+        "</gml:CompositeSurface></gml:exterior></gml:Solid></bldg:lod2Solid>"
+    )
+    odd = building(
+        "1st",
+        solid,
+        boundary("WallSurface", "W:1", polygon("9P1", square(0, 0, 0), ring_id="r 1")),
+        boundary("RoofSurface", "R1", polygon("P2", square(0, 0, 3))),
+    )
+    plain = building("B2", boundary("WallSurface", "W2", polygon("Q1", square(5, 0, 0), ring_id="q1r")))
+    a, b = read_model(write_doc(tmp_path, odd + plain))[1]
+    assert a.id == "_1st" and [p.id for p in a.polygons] == ["_9P1", "P2"]
+    assert [p.in_solid for p in a.polygons] == [True, True]
+    assert a.polygons[0].surface_id == "W_1" and a.polygons[0].exterior.id == "r_1"
+    assert b.id == "B2" and [(p.id, p.exterior.id, p.surface_id) for p in b.polygons] == [("Q1", "q1r", "W2")]
+
+
 def test_xlink_to_missing_polygon_is_dropped(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     body = building(
         "B1",

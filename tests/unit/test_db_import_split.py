@@ -192,3 +192,20 @@ def _alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_batches_parsed_ahead_until_the_transform_is_ready(model) -> None:
+    """A reader whose transform has not come yet holds up to `AHEAD` full batches and parses on
+    (`db.import_child.batches` with `ready`): the same batches in the same order."""
+    from db.import_child import AHEAD, batches
+
+    def ids(buildings: list) -> list[str]:
+        return [b.id for b in buildings]
+
+    calls = iter([False] * (AHEAD + 2) + [True] * 1000)  # not ready for longer than it may hold
+    plain = list(batches(model, False, 20, ids))
+    ahead = list(batches(model, False, 20, ids, ready=lambda: next(calls)))
+    assert ahead == plain and len(plain) > AHEAD + 2
+    late = iter([False] * 3 + [True] * 1000)
+    assert list(batches(model, False, 20, ids, ready=lambda: next(late))) == plain
+
