@@ -90,3 +90,20 @@ def test_no_windows_are_invented_on_a_coarse_wall_without_panes():
     for seed in range(3):
         tex = blurred_texture(grid, 0.1 * seed, seed=seed, windows=False, leaks=LEAKS)
         assert analyse_surface(grid, tex).of_kind("window") == ()
+
+
+@pytest.mark.parametrize("shift_m", [0.0, 0.1, 0.2, 0.3])
+def test_shallow_blurred_panes_count_in_their_lattice(shift_m):
+    """A blur of σ = 1.3 texels leaves the −2.5 K panes 0.8–1 K deep in the texture: their
+    minima pass `window_coarse_delta_k` (0.8 K) but not `window_delta_k` (1 K), so they count in
+    their regular group (with 1 K: 2–3 of 8 at some phases); without panes, nothing is found."""
+    grid = wall_grid(px_per_m=2.5)
+    res = analyse_surface(grid, blurred_texture(grid, shift_m, seed=3, blur_px=1.3, leaks=(), pipe=False))
+    found = np.array([w.centre for w in res.of_kind("window")]).reshape(-1, 3)
+    truth = pane_points(grid, shift_m)
+    d = np.linalg.norm(truth[:, None] - found[None], axis=2) if len(found) else np.full((8, 1), np.inf)
+    assert np.sum(d.min(axis=1) < 0.5) >= 7
+    assert len(found) == 0 or np.all(d.min(axis=0) < 0.5)
+    assert res.of_kind("leak") == ()
+    bare = blurred_texture(grid, shift_m, seed=3, blur_px=1.3, windows=False, leaks=LEAKS)
+    assert analyse_surface(grid, bare).of_kind("window") == ()

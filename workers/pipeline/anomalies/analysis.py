@@ -158,8 +158,13 @@ def analyse_surface(
         if a is not None:
             found.append(("window", a))
     leak_mask = np.zeros_like(observed)
+    fit_on = (residual, usable)
+    leaks = regions_mask(regions, "leak", observed)
+    if leaks.any():  # the leaks' own heat out of the line profiles
+        fit_on = (fit_residual(value - t1, observed, keep, leaks, size, o) - shift, usable)
+        fit_on[0][panes] = residual[panes]
     for r in regions:
-        a = _region_anomaly(grid, texture, r, frames_n, thr, min_frames, o, (residual, usable))
+        a = _region_anomaly(grid, texture, r, frames_n, thr, min_frames, o, fit_on)
         if a is None:
             continue
         found.append((r.kind, a))
@@ -200,6 +205,26 @@ def leak_threshold(residual: np.ndarray, calm: np.ndarray, size: float, o: Anoma
     if quiet.sum() < o.min_observed_texels:
         return thr
     return min(thr, max(o.k_mad * robust_stats(fine[quiet])[1], o.floor_k))
+
+
+def fit_residual(
+    excess: np.ndarray,
+    observed: np.ndarray,
+    keep: np.ndarray,
+    leaks: np.ndarray,
+    size: float,
+    o: AnomalyOptions,
+) -> np.ndarray:
+    """The residual `(H, W)` a leak's amplitude is fitted on: `excess (H, W)` (over the first
+    typical value) less line profiles (`lines.line_profiles`) taken over the `keep (H, W)`
+    texels (outside the window zone) farther than `spread_scale_m` from the `leaks (H, W)`
+    (their half-maximum regions). A leak covering most of a half row or column (narrow walls,
+    short columns) lifts that half's median: with the profiles of the detection step the fit
+    would lose that part of the leak (`docs/anomalies.md`)."""
+    r = max(1, round(o.spread_scale_m / size))
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    use = keep & ~cv2.dilate(leaks.view(np.uint8), disk).astype(bool)
+    return line_profiles(np.where(observed, excess, np.nan), use, size, o.line_min_m)[2]
 
 
 def floor_attenuation(texture: SurfaceTexture, observed: np.ndarray, o: AnomalyOptions) -> float:

@@ -37,6 +37,11 @@ class AnomalyOptions:
             fewer frames than this, are not reported (capped by the texture's kept observations).
         windows: look for windows (regular structures) and set them apart.
         window_delta_k: a pane deviates from typical by at least this (either sign).
+        window_coarse_delta_k: on coarse textures (`windows.coarse`), the depth of a cold local
+            minimum that makes it a pane candidate (its half-depth region); one shallower than
+            `window_delta_k` counts only in a regular group (never alone) and, not accepted,
+            does not keep leaks from seeding. The imaging blur there (σ about a texel) leaves
+            a 1.2 × 1.4 m pane 0.8-1 K deep in the texture where it is 2.5 K on the wall.
         window_min_m, window_max_m: pane side lengths accepted as a window.
         window_min_texels: a pane must span this many texels per side (else no windows: an
             unresolved grid is not invented); on coarse textures (`windows.coarse`: the
@@ -88,6 +93,7 @@ class AnomalyOptions:
     min_frames: int = 2
     windows: bool = True
     window_delta_k: float = 1.0
+    window_coarse_delta_k: float = 0.8
     window_min_m: float = 0.4
     window_max_m: float = 4.0
     window_min_texels: int = 3
@@ -117,6 +123,7 @@ class AnomalyOptions:
             "k_mad",
             "min_area_m2",
             "window_delta_k",
+            "window_coarse_delta_k",
             "window_min_m",
             "bridge_min_length_m",
             "spread_scale_m",

@@ -20,13 +20,15 @@ sub-texel (`half_depth_extent`), linked with one texel more of slack (`_blurred_
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 from scipy import ndimage
 
 from workers.pipeline.anomalies.options import AnomalyOptions
+
+_CORNERS = 6.0  # texels a cold pane's segmented blob may miss at its blurred corners
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,7 @@ class Window:
     group: int  # size of its regular group
     blurred: bool = False  # found on a coarse texture by its half-depth region (`_blurred_blobs`)
     extent: tuple[float, float] = (0.0, 0.0)  # its half-depth width and height, texels (blurred)
+    depth: float = 0.0  # the depth of its local extremum, K (blurred)
 
     @property
     def box(self) -> tuple[slice, slice]:
@@ -66,7 +69,7 @@ def _blobs(excess: np.ndarray, sign: int, size: float, o: AnomalyOptions) -> lis
         if not (lo <= w <= hi and lo <= h <= hi):
             continue
         fill = areas[k] / (w * h)
-        corners = 6.0 / (w * h) if sign < 0 else 0.0  # cold panes: blurred corners forgiven
+        corners = _CORNERS / (w * h) if sign < 0 else 0.0  # cold panes: blurred corners forgiven
         if fill >= o.window_fill - corners:
             out.append(Window(x, y, x + w, y + h, sign, float(fill), 0))
     return out
@@ -79,7 +82,9 @@ def coarse(size: float, o: AnomalyOptions) -> bool:
     return o.window_min_m < o.window_min_texels * size
 
 
-def _blurred_blobs(excess: np.ndarray, sign: int, size: float, o: AnomalyOptions) -> list[Window]:
+def _blurred_blobs(
+    excess: np.ndarray, sign: int, size: float, o: AnomalyOptions, delta: float
+) -> list[Window]:
     """Pane candidates of a coarse texture (`coarse`): every local extremum of `sign · excess`
     (3 × 3) of at least `window_delta_k`, strongest first, with the texels 4-connected to it at
     half its depth or more (its half-depth region; a blurred box's half-depth contour lies near
@@ -89,7 +94,7 @@ def _blurred_blobs(excess: np.ndarray, sign: int, size: float, o: AnomalyOptions
     box): a regular group, or the lone-pane rule on their extents (`_lone_pane`), makes them
     windows (`find_windows`)."""
     d = np.nan_to_num(sign * excess, nan=0.0).astype(np.float32)
-    peak = (d >= o.window_delta_k) & (d >= cv2.dilate(d, np.ones((3, 3), np.uint8)))
+    peak = (d >= delta) & (d >= cv2.dilate(d, np.ones((3, 3), np.uint8)))
     H, W = d.shape
     lo = max(o.window_min_texels - 1.0, o.window_min_m / size)
     hi = o.window_max_m / size
@@ -112,7 +117,9 @@ def _blurred_blobs(excess: np.ndarray, sign: int, size: float, o: AnomalyOptions
             continue
         fill = float(region.sum()) / ((y1 - y0) * (x1 - x0))
         y, x = int(y0) + win[0].start, int(x0) + win[1].start
-        out.append(Window(x, y, x + int(x1 - x0), y + int(y1 - y0), sign, fill, 0, True, (bw, bh)))
+        out.append(
+            Window(x, y, x + int(x1 - x0), y + int(y1 - y0), sign, fill, 0, True, (bw, bh), float(d[i, j]))
+        )
     return out
 
 
@@ -143,9 +150,14 @@ def _lone_pane(w: Window, size: float, o: AnomalyOptions) -> bool:
     texture: no fill to judge) by its half-depth extents, when `window_lone_fill` < 1."""
     lo, hi = max(0.6, o.window_min_m), min(2.5, o.window_max_m)
     if w.blurred:
-        return o.window_lone_fill < 1 and all(lo <= v * size <= hi for v in w.extent)
+        return (
+            o.window_lone_fill < 1
+            and w.depth >= o.window_delta_k
+            and all(lo <= v * size <= hi for v in w.extent)
+        )
     sides = ((w.x1 - w.x0) * size, (w.y1 - w.y0) * size)
-    return w.fill >= o.window_lone_fill and all(lo <= v <= hi for v in sides)
+    corners = _CORNERS / ((w.x1 - w.x0) * (w.y1 - w.y0))  # blurred corners forgiven, as in `_blobs`
+    return w.fill >= o.window_lone_fill - corners and all(lo <= v <= hi for v in sides)
 
 
 def _on_lattice(pos: np.ndarray, tol_px: float) -> bool:
@@ -203,9 +215,7 @@ def _regular(blobs: list[Window], min_count: int) -> list[Window]:
             continue
         if not (_on_lattice(cx[m], 0.5 * w[m].mean()) and _on_lattice(cy[m], 0.5 * h[m].mean())):
             continue
-        out += [
-            Window(*(int(v) for v in b[i]), blobs[i].sign, blobs[i].fill, len(m), blobs[i].blurred) for i in m
-        ]
+        out += [replace(blobs[i], group=len(m)) for i in m]
     return out
 
 
@@ -245,14 +255,18 @@ def find_windows(values: np.ndarray, typical: float, size: float, o: AnomalyOpti
             seen = np.zeros(shape, bool)
             for w in blobs:
                 seen[w.box] = True
-            blobs += [w for w in _blurred_blobs(excess, sign, size, o) if not seen[w.box].any()]
+            delta = min(o.window_delta_k, o.window_coarse_delta_k)
+            blobs += [w for w in _blurred_blobs(excess, sign, size, o, delta) if not seen[w.box].any()]
         regular = _regular(blobs, o.window_min_count)
         if sign < 0:  # a lone cold pane: a clean rectangle of a window's size
             grouped = {(w.x0, w.y0) for w in regular}
             regular += [w for w in blobs if (w.x0, w.y0) not in grouped and _lone_pane(w, size, o)]
         windows += regular
         panes = np.zeros(shape, bool)
+        accepted = {(w.x0, w.y0, w.x1, w.y1) for w in regular}
         for w in blobs if sign < 0 else regular:
+            if w.blurred and w.depth < o.window_delta_k and (w.x0, w.y0, w.x1, w.y1) not in accepted:
+                continue  # a shallow minimum outside a regular group: not a pane
             exclusion[w.box] = True
             panes[w.y0 + 1 : w.y1 - 1, w.x0 + 1 : w.x1 - 1] = True
         panes &= np.isfinite(values)
