@@ -103,31 +103,35 @@ def test_sorted_columns_matches_numpy_sort_with_empty_slots() -> None:
 
 def test_a_frame_that_contradicts_the_others_is_dropped_as_a_whole() -> None:
     """A frame whose pose is off by pixels (its view of a roof shifted onto the sky on a third of
-    the texels) wins the texels it shares with one other frame (it is the finer) and is the only
-    view of others: the per-texel median cannot reject it, the frame-level test does; frames that
-    agree within their noise stay."""
+    the texels) is the only view of some texels: the per-texel median cannot reject it there,
+    the frame-level test does;
+    frames that agree within their noise stay, and so do two passes of a sequence that disagree
+    as a whole (the surface's temperature changed between them)."""
     from workers.pipeline.texture.consistency import ConsistencyOptions, reject_inconsistent_frames
 
     rng = np.random.default_rng(11)
     H, W = 20, 30
     truth = 280.0 + 0.5 * np.sin(np.arange(W) / 4.0)[None, :] * np.ones((H, 1))
-    tex = SurfaceTexture.empty((H, W))
     rows, cols = (a.ravel() for a in np.mgrid[0:H, 0:W])
-    for f, cover in enumerate((slice(0, 10), slice(5, 15), slice(10, 20))):  # three good frames
-        m = (rows >= cover.start) & (rows < cover.stop)
-        vals = truth[rows[m], cols[m]] + 0.05 * rng.standard_normal(int(m.sum()))
-        n = int(m.sum())
-        tex.merge(rows[m], cols[m], vals.astype(np.float32), np.full(n, 0.06), np.full(n, 60.0), f)
-    bad = truth[rows, cols].copy()
-    sky = rows % 3 == 0  # a third of its view shows the sky
-    bad[sky] -= 15.0
-    tex.merge(rows, cols, bad.astype(np.float32), np.full(len(rows), 0.05), np.full(len(rows), 60.0), 3)
+
+    def texture(bands: list[tuple[int, int, float]]) -> SurfaceTexture:
+        tex = SurfaceTexture.empty((H, W))
+        for f, (r0, r1, offset) in enumerate(bands):  # frame f sees rows r0..r1-1
+            m = (rows >= r0) & (rows < r1)
+            n = int(m.sum())
+            vals = truth[rows[m], cols[m]] + offset + 0.05 * rng.standard_normal(n)
+            tex.merge(rows[m], cols[m], vals.astype(np.float32), np.full(n, 0.06), np.full(n, 60.0), f)
+        return tex
+
+    tex = texture([(0, 10, 0.0), (0, 15, 0.0), (5, 15, 0.0), (10, 15, 0.0)])  # rows 15-19: none
+    bad = truth[rows, cols] - np.where(rows % 3 == 0, 15.0, 0.0)  # a third of its view: sky
+    tex.merge(rows, cols, bad.astype(np.float32), np.full(len(rows), 0.05), np.full(len(rows), 60.0), 4)
     assert float(np.nanmax(np.abs(tex.value - truth))) > 10.0  # the bad frame decides some texels
-    clean = SurfaceTexture.empty((H, W))
-    every = np.full(len(rows), 0.05), np.full(len(rows), 60.0)
-    clean.merge(rows, cols, truth[rows, cols].astype(np.float32), *every, 0)
-    assert reject_inconsistent_frames([clean]) == []
-    assert reject_inconsistent_frames([tex], ConsistencyOptions()) == [3]
-    assert float(np.nanmax(np.abs(tex.value - truth))) < 0.3
-    assert 3 not in tex.frames_used(tex.observed).tolist() and tex.observed.all()
     assert reject_inconsistent_frames([tex], ConsistencyOptions(enabled=False)) == []
+    assert reject_inconsistent_frames([tex]) == [4]
+    assert float(np.nanmax(np.abs(tex.value - truth))) < 0.3
+    assert 4 not in tex.frames_used(tex.observed).tolist()
+    assert tex.observed[:15].all() and not tex.observed[15:].any()  # seen by the bad frame alone
+    assert reject_inconsistent_frames([texture([(0, 20, 0.0), (0, 20, 0.0), (0, 20, 0.0)])]) == []
+    two_passes = texture([(0, 20, 0.0), (0, 20, 0.0), (0, 20, 1.0), (0, 20, 1.0)])
+    assert reject_inconsistent_frames([two_passes]) == []

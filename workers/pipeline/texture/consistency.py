@@ -15,7 +15,8 @@ none, it stands. Pooled over every texel the frame shares with other frames, the
 is plain: on the synthetic NRW drive with true poses no frame has more than 0.1 % of its shared
 texels farther than `outlier_sigmas · noise` from the median of the texel's observations;
 a frame whose sequence pose is 0.8° off (4 px on the building) has 45–54 %, in each of the three
-buildings it sees (`max_outlier_share`). The frame with the largest share goes first and the
+buildings it sees, while the median frame of those buildings has none (`max_outlier_share`,
+`relative`). The frame with the largest share goes first and the
 shares are computed again without it (the frames it contradicted are cleared of its votes),
 until no frame exceeds the share.
 """
@@ -40,11 +41,16 @@ class ConsistencyOptions:
             (`fused.FusedOptions`) from the median of the observations of the same texel on more
             than this share of the texels it shares with other frames is dropped.
         min_shared: a frame sharing fewer texels than this with other frames is never judged.
+        relative: ... and only when its share is also more than this many times the median share
+            of the unit's judged frames: a frame is dropped for contradicting frames that agree
+            among themselves, not when every frame disagrees (a surface whose temperature
+            changed between two passes of a long sequence).
     """
 
     enabled: bool = True
     max_outlier_share: float = 0.25
     min_shared: int = 20
+    relative: float = 3.0
 
 
 def frame_disagreement(textures: Sequence[SurfaceTexture], threshold: float) -> dict[int, tuple[int, int]]:
@@ -92,7 +98,8 @@ def reject_inconsistent_frames(
         if not judged:
             return dropped
         worst = max(judged, key=lambda f: (judged[f], -f))
-        if judged[worst] <= options.max_outlier_share:
+        limit = max(options.max_outlier_share, options.relative * float(np.median(list(judged.values()))))
+        if judged[worst] <= limit:
             return dropped
         for tex in textures:
             tex.drop_frame(worst)
