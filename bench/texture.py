@@ -37,7 +37,9 @@ two grids differ in density). Prints JSON, per scene and platform:
   for both, `ratio_m` (product ÷ reference median shift in metres; the two grids' texels may
   differ) and `ratio_texels`; bars: product median shift ≤ 0.3 texel and `ratio_m` ≤ 1.2.
 Then `errors`: one scene with the default GNSS/INS errors and refinement on (drive and flight):
-product RMSE with errors ÷ product RMSE with true poses (bar ≤ 1.5), on all surfaces it textured.
+product RMSE with errors ÷ product RMSE with true poses (bar ≤ 1.5), on all surfaces it textured;
+`orientation.frames_rejected_by_texture`: building-frame pairs whose observations the texture
+stage dropped for contradicting the other frames' (`texture.consistency`; a pose off by pixels).
 
 Usage: `python bench/texture.py [--scenes nrw,berlin,potsdam] [--platform drive,flight]
 [--frames 60,24] [--errors-scene nrw|none] [--split-half-flights] [--quick] [--out DIR]`.
@@ -120,6 +122,8 @@ def run_case(
         "unit_frames_refined_share": round(sum(int(o.get("refined") or 0) for o in orient) / n_or, 3)
         if n_or
         else None,
+        # building-frame pairs the texture dropped: observations contradicting the other frames'
+        "frames_rejected_by_texture": sum(len(o.get("frames_rejected_by_texture") or []) for o in orient),
     }
     fig["frames"] = spec.n_frames
     fig["buildings_in_scene"] = len(case.res.buildings)

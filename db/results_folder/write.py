@@ -278,6 +278,7 @@ def building_report(r: BuildingResult, n_frames: int) -> dict[str, Any]:
             "mean_rms_px": float(np.mean([p.rms_px for p in refined])) if refined else None,
             "mean_matches": float(np.mean([p.matches for p in refined])) if refined else None,
             "frames_withheld": list(r.frames_withheld),
+            "frames_rejected_by_texture": list(r.frames_rejected),
         },
         "timings_s": dict(r.timings_s),
         "anomalies": {k: sum(1 for a in r.anomalies if a.kind == k) for k in ("leak", "window", "bridge")},

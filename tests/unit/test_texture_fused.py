@@ -99,3 +99,39 @@ def test_sorted_columns_matches_numpy_sort_with_empty_slots() -> None:
         x[rng.random((k, 500)) < 0.3] = np.inf
         x[:, :3] = 290.0  # ties
         assert np.array_equal(sorted_columns(x), np.sort(x, axis=0)), k
+
+
+def test_a_frame_that_contradicts_the_others_is_dropped_as_a_whole() -> None:
+    """A frame whose pose is off by pixels (its view of a roof shifted onto the sky on a third of
+    the texels) is the only view of some texels: the per-texel median cannot reject it there,
+    the frame-level test does;
+    frames that agree within their noise stay, and so do two passes of a sequence that disagree
+    as a whole (the surface's temperature changed between them)."""
+    from workers.pipeline.texture.consistency import ConsistencyOptions, reject_inconsistent_frames
+
+    rng = np.random.default_rng(11)
+    H, W = 20, 30
+    truth = 280.0 + 0.5 * np.sin(np.arange(W) / 4.0)[None, :] * np.ones((H, 1))
+    rows, cols = (a.ravel() for a in np.mgrid[0:H, 0:W])
+
+    def texture(bands: list[tuple[int, int, float]]) -> SurfaceTexture:
+        tex = SurfaceTexture.empty((H, W))
+        for f, (r0, r1, offset) in enumerate(bands):  # frame f sees rows r0..r1-1
+            m = (rows >= r0) & (rows < r1)
+            n = int(m.sum())
+            vals = truth[rows[m], cols[m]] + offset + 0.05 * rng.standard_normal(n)
+            tex.merge(rows[m], cols[m], vals.astype(np.float32), np.full(n, 0.06), np.full(n, 60.0), f)
+        return tex
+
+    tex = texture([(0, 10, 0.0), (0, 15, 0.0), (5, 15, 0.0), (10, 15, 0.0)])  # rows 15-19: none
+    bad = truth[rows, cols] - np.where(rows % 3 == 0, 15.0, 0.0)  # a third of its view: sky
+    tex.merge(rows, cols, bad.astype(np.float32), np.full(len(rows), 0.05), np.full(len(rows), 60.0), 4)
+    assert float(np.nanmax(np.abs(tex.value - truth))) > 10.0  # the bad frame decides some texels
+    assert reject_inconsistent_frames([tex], ConsistencyOptions(enabled=False)) == []
+    assert reject_inconsistent_frames([tex]) == [4]
+    assert float(np.nanmax(np.abs(tex.value - truth))) < 0.3
+    assert 4 not in tex.frames_used(tex.observed).tolist()
+    assert tex.observed[:15].all() and not tex.observed[15:].any()  # seen by the bad frame alone
+    assert reject_inconsistent_frames([texture([(0, 20, 0.0), (0, 20, 0.0), (0, 20, 0.0)])]) == []
+    two_passes = texture([(0, 20, 0.0), (0, 20, 0.0), (0, 20, 1.0), (0, 20, 1.0)])
+    assert reject_inconsistent_frames([two_passes]) == []

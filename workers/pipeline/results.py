@@ -168,6 +168,9 @@ class BuildingResult:
         timings_s: seconds per stage inside the unit (e.g. `orient`, `texture`, `atlas`).
         frames_withheld: frames that did not texture the building: refinement left them at
             priors too uncertain for it (`units.withheld_frames`).
+        frames_rejected: frames whose observations the texture stage dropped: they contradicted
+            the other frames' on the texels they share (a pose off by pixels,
+            `texture.consistency`).
     """
 
     building_id: str
@@ -179,6 +182,7 @@ class BuildingResult:
     anomalies: tuple[Anomaly, ...] = ()
     timings_s: Mapping[str, float] = field(default_factory=dict)
     frames_withheld: tuple[int, ...] = ()
+    frames_rejected: tuple[int, ...] = ()
 
 
 def output_radiometry(radiometry: Radiometry, frame_dtype: np.dtype) -> Radiometry:

@@ -34,6 +34,7 @@ from workers.pipeline.orientation.block import UnitSequence
 from workers.pipeline.orientation.building import CoregisterOptions, refine_building
 from workers.pipeline.results import BuildingResult, FramePose, RefinedPose, SurfaceStats
 from workers.pipeline.texture.atlas import AtlasOptions, build_atlas
+from workers.pipeline.texture.consistency import reject_inconsistent_frames
 from workers.pipeline.texture.fusion import FusionOptions, SurfaceTexels, SurfaceTexture, texture_frame
 from workers.pipeline.texture.sight import SurfaceSight, surface_resolution, surface_sight
 from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
@@ -273,7 +274,8 @@ class UnitTextures:
     """The fused textures of a unit's surfaces before packing (for tests and benches).
 
     `resolutions` (texels per metre of each grid) and `reasons` (why a polygon the frames see got
-    no texel, by polygon id) go into the surface statistics."""
+    no texel, by polygon id) go into the surface statistics; `rejected`: frames whose
+    observations contradicted the other frames' and were dropped (`texture.consistency`)."""
 
     polygons: list[Polygon]
     grids: list[TexelGrid]
@@ -282,6 +284,7 @@ class UnitTextures:
     empty: list[SurfaceStats] = field(default_factory=list)
     resolutions: list[float] = field(default_factory=list)
     reasons: dict[str, str] = field(default_factory=dict)
+    rejected: list[int] = field(default_factory=list)
 
 
 def _reason_untextured(
@@ -345,9 +348,12 @@ def texture_unit(
         )
         t_load += t2 - t1
         t_tex += time.perf_counter() - t2
+    t1 = time.perf_counter()
+    rejected = reject_inconsistent_frames(textures, opts.fusion.consistency)
+    t_tex += time.perf_counter() - t1
     timings = {"grid": t_grid, "decode": t_load, "texture": t_tex}
     return UnitTextures(polygons=polygons, grids=grids, textures=textures, timings_s=timings, empty=empty,
-                        resolutions=resolutions, reasons=reasons)  # fmt: skip
+                        resolutions=resolutions, reasons=reasons, rejected=rejected)  # fmt: skip
 
 
 def unit_raycaster(unit: BuildingUnit) -> RayCaster:
@@ -402,4 +408,5 @@ def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) ->
         anomalies=anomalies,
         timings_s=timings,
         frames_withheld=tuple(withheld),
+        frames_rejected=tuple(tex.rejected),
     )

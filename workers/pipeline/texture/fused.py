@@ -143,6 +143,28 @@ class SurfaceTexture:
         self._fuse(r, c)
         return len(r)
 
+    def drop_frame(self, frame_index: int) -> int:
+        """Remove every kept observation of frame `frame_index` and fuse the touched texels again
+        (texels left with none become unobserved). Returns the number of observations removed."""
+        hit = self.obs_frame == frame_index  # (K, H, W)
+        n = int(hit.sum())
+        if n == 0:
+            return 0
+        self.obs_value[hit] = np.nan
+        self.obs_res[hit] = np.inf
+        self.obs_angle[hit] = np.nan
+        self.obs_frame[hit] = -1
+        r, c = np.nonzero(hit.any(axis=0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self._fuse(r, c)
+        empty = ~np.isfinite(self.obs_res[:, r, c]).any(axis=0)
+        re_, ce = r[empty], c[empty]
+        self.frame[re_, ce] = -1
+        self.count[re_, ce] = 0
+        self.value[re_, ce] = np.nan
+        self.view_angle[re_, ce] = np.nan
+        return n
+
     def _fuse(self, r: np.ndarray, c: np.ndarray) -> None:
         """Recompute value, count, best resolution/angle/frame and `worst` of texels `r, c` `(N,)`."""
         o = self.options

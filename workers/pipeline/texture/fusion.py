@@ -31,6 +31,7 @@ import numpy as np
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.texture.alignment import AlignOptions, align_partial
+from workers.pipeline.texture.consistency import ConsistencyOptions
 from workers.pipeline.texture.frame_pass import UnitTexels, observe
 from workers.pipeline.texture.fused import FusedOptions, SurfaceTexture
 from workers.pipeline.texture.surface_texels import SurfaceTexels
@@ -55,6 +56,8 @@ class FusionOptions:
         improve_factor: a later observation replaces a texel's worst kept one only when its
             local resolution is smaller than `improve_factor` × that one's.
         fused: how the kept observations of a texel combine (`fused.FusedOptions`).
+        consistency: after the unit's last frame, frames whose observations contradict the
+            other frames' are dropped (`consistency.ConsistencyOptions`: a pose off by pixels).
     """
 
     align: bool = False
@@ -63,6 +66,7 @@ class FusionOptions:
     min_significance: float = 5.0
     improve_factor: float = 1.0
     fused: FusedOptions = field(default_factory=FusedOptions)
+    consistency: ConsistencyOptions = field(default_factory=ConsistencyOptions)
 
 
 __all__ = [
