@@ -360,10 +360,10 @@ def run_unit(job_id: str, building_gml_id: str, *, task_id: str) -> str:
 # -- finish --------------------------------------------------------------------------------------
 def _stored_results(
     s: Session, job: jobs.JobRecord, kept: Prepared, out: Path
-) -> tuple[list[BuildingResult], list[UnitFailure]]:
+) -> tuple[list[BuildingResult], list[UnitFailure], int]:
     """The job's stored results, plan order, tiles in `out` and dropped from memory: each as its
-    unit task kept it (`service_results`), else loaded from PostGIS; and its failed units
-    (`UnitFailure`)."""
+    unit task kept it (`service_results`), else loaded from PostGIS; its failed units
+    (`UnitFailure`); how many were loaded from PostGIS."""
     rows = s.execute(
         text(
             "SELECT b.gml_id, u.status, u.error FROM job_unit u JOIN building b ON b.id = u.building_id "
@@ -374,6 +374,7 @@ def _stored_results(
     state = {g: (st, err) for g, st, err in rows}
     results: list[BuildingResult] = []
     failures: list[UnitFailure] = []
+    loaded = 0
     for u in kept.planned.units:
         st, err = state.get(u.building.id, ("missing", None))
         if st == "successful":
@@ -386,9 +387,10 @@ def _stored_results(
             for tile in r.tiles:
                 write_tile(out, tile)
             results.append(without_pixels(r))
+            loaded += 1
         elif st == "failed":
             failures.append(UnitFailure(u.building.id, err or "failed"))
-    return results, failures
+    return results, failures, loaded
 
 
 def finish_job(job_id: str) -> str:
@@ -410,12 +412,14 @@ def finish_job(job_id: str) -> str:
                 return "failed"
             jobs.set_stage(s, job_id=jid, stage="finish")
             s.commit()
+        t0, c0 = time.perf_counter(), time.process_time()
+        parts: dict[str, float] = {}  # wall seconds of the finish's parts (its `finish-parts` line)
         kept: Prepared = storage.read_pickle(job_dir(jid) / "prepared.pkl")
         out, build = job_dir(jid) / "results", job_dir(jid) / f".tmp-results-{uuid.uuid4().hex}"
         try:
             build.mkdir(parents=True)
             with Session(engine()) as s:
-                results, failures = _stored_results(s, job, kept, build)
+                results, failures, n_loaded = _stored_results(s, job, kept, build)
                 units_s = s.execute(
                     text(
                         "SELECT EXTRACT(EPOCH FROM max(finished_at) - min(started_at)) FROM job_unit "
@@ -424,6 +428,7 @@ def finish_job(job_id: str) -> str:
                     {"j": jid},
                 ).scalar()
             timings = {**kept.timings, "units": float(units_s or 0.0)}
+            parts["gather"] = time.perf_counter() - t0
             options = RunOptions.from_dict(job.options)
             finish(build, kept.ingested, kept.calibrated, kept.oriented, kept.planned, results, failures,
                    options, timings, package=kept.package)
@@ -431,7 +436,9 @@ def finish_job(job_id: str) -> str:
             os.replace(build, out)
         finally:
             shutil.rmtree(build, ignore_errors=True)
+        parts["write"] = time.perf_counter() - t0 - parts["gather"]
         storage.zip_folder(out, job_dir(jid) / "results.zip")
+        parts["zip"] = time.perf_counter() - t0 - parts["gather"] - parts["write"]
         mounting = json.loads((out / "orientation.json").read_text(encoding="utf-8")).get("mounting")
         with Session(engine()) as s:
             jobs.set_job_results(s, job_id=jid, location=str(out), timings_s=timings, mounting=mounting)
@@ -440,4 +447,8 @@ def finish_job(job_id: str) -> str:
         shutil.rmtree(job_dir(jid) / "units", ignore_errors=True)
         shutil.rmtree(kept_dir(jid), ignore_errors=True)
         (job_dir(jid) / "priors.pkl").unlink(missing_ok=True)
+    line = {"job": str(jid), **{k: round(v, 3) for k, v in parts.items()}, "kept": len(results) - n_loaded,
+            "loaded": n_loaded, "wall_s": round(time.perf_counter() - t0, 3),
+            "cpu_s": round(time.process_time() - c0, 3)}  # fmt: skip
+    log.info("finish-parts %s", json.dumps(line))
     return "written"
