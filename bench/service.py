@@ -211,6 +211,25 @@ class StageCpu:
         }
 
 
+def finish_logged(stack: Stack, job: str, patience_s: float = 30.0) -> dict[str, str]:
+    """The workers' logs once the finish task of `job` has logged its `task-span` line: the
+    results are served from the finish's commit on, a moment before its task ends and logs (at
+    most `patience_s` s; then the logs as they are)."""
+
+    def logs() -> dict[str, str]:
+        return {name: stack.log(name) for name in stack.procs if name.startswith("w")}
+
+    def finished(text: str) -> bool:
+        return any("task-span" in ln and "finish_job" in ln and job in ln for ln in text.splitlines())
+
+    try:
+        wait_for(f"the finish of {job} in the logs", lambda: any(map(finished, logs().values())),
+                 patience_s=patience_s, step_s=0.1)  # fmt: skip
+    except TimeoutError:
+        say(f"no finish task-span for job {job} in the worker logs")
+    return logs()
+
+
 def service_job(stack: Stack, inputs: dict) -> dict:
     """Submit, poll until results are listed; wall time from submission, the job's figures, CPU
     (whole job and per stage)."""
@@ -224,7 +243,7 @@ def service_job(stack: Stack, inputs: dict) -> dict:
         wall = time.perf_counter() - t0
     stages.sample(None)
     cpu = cpu_delta(cpu0, tree_cpu_s(stack.pids()))
-    logs = {name: stack.log(name) for name in stack.procs if name.startswith("w")}
+    logs = finish_logged(stack, job)
     return {
         "timeline": timeline(logs, job, t_unix, workers=2),
         "job": job,

@@ -1,7 +1,7 @@
 """The service bench's job timeline (`bench/service.py`): which worker process ran which task of a
 job when, from the `task-span` lines of the workers (`workers.tasks`) and the `window-span` lines
-of the orientation windows (`workers.service_windows`) in their logs, and a critical-path estimate
-from the tasks' CPU seconds.
+of the orientation windows (`workers.service_windows`) in their logs, a critical-path estimate
+from the tasks' CPU seconds, and the parts of the finish (its `finish-parts` line).
 
 Times are seconds from the job's submission (wall clock of this machine); CPU seconds are those of
 the worker process over the task (`time.process_time`, all its threads). On a shared machine the
@@ -37,6 +37,23 @@ def spans(log: str) -> list[dict[str, Any]]:
                 except ValueError:
                     continue
                 out.append({"kind": kind, **rec})
+    return out
+
+
+def finish_parts(logs: dict[str, str], job: str) -> list[dict[str, Any]]:
+    """The `finish-parts` records of job `job` in the workers' `logs` (`service_job.finish_job`:
+    wall seconds of gathering the units' results, writing the folder and zipping it; how many
+    results the units kept and how many were loaded from PostGIS; its wall and CPU seconds)."""
+    out = []
+    for worker, text in logs.items():
+        for line in text.splitlines():
+            if "finish-parts " in line:
+                try:
+                    rec = json.loads(line.split("finish-parts ", 1)[1])
+                except ValueError:
+                    continue
+                if rec.get("job") == job:
+                    out.append({"worker": worker, **rec})
     return out
 
 
@@ -116,5 +133,6 @@ def timeline(logs: dict[str, str], job: str, t_submit: float, workers: int) -> d
         "drawing": draw(sp),
         "busy_wall_s": busy,
         "critical_path_cpu_s": {"1": one, str(workers): many},
+        "finish_parts": finish_parts(logs, job),
         "speedup_from_cpu": round(one["total"] / many["total"], 3) if many["total"] else None,
     }

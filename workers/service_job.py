@@ -16,9 +16,12 @@ In: ids (job uuid as a string, building gml id, model import id), the settings o
   at the end while the other workers idle; the order changes no result).
 - `run_unit`: claims the unit (`db.jobs.claim_unit`), runs it (`workers.job.run_unit`), stores
   the result in one transaction in which the job row is locked `FOR SHARE` and checked (a
-  dismissed job gets nothing more), then finishes the job when it was the last.
+  dismissed job gets nothing more), keeping its tiles and its result without pixels on the
+  storage for the finish in that transaction (`workers.service_results`), then finishes the job
+  when it was the last.
 - `finish_job`: the results folder (`workers.job.finish`, the writer of `citytherm run`) from the
-  stored results, and its zip (the sweeper, model imports and failed tasks: `service_upkeep`).
+  results the units kept (a building whose unit kept none: loaded from PostGIS), and its zip (the
+  sweeper, model imports and failed tasks: `service_upkeep`).
 
 Prepare and finish run once per job at a time: each holds a session-level advisory lock on its
 own connection (released when its process dies), a second delivery finds it held and returns.
@@ -83,6 +86,7 @@ from workers.pipeline.results import BuildingResult
 from workers.pipeline.units import BuildingUnit
 from workers.run import without_pixels
 from workers.service_process import engine, job_dir, job_lock, send, settings
+from workers.service_results import keep_result, kept_dir, kept_result
 from workers.service_windows import celery_window_map
 
 log = logging.getLogger(__name__)
@@ -245,10 +249,9 @@ def prepare_job(job_id: str) -> str:
             s.commit()
         try:
             kept, units, priors = _run_stages(job)
-            for u in units:
-                storage.write_pickle(storage.unit_path(settings().storage_dir, jid, u.building.id), u)
-            storage.write_pickle(job_dir(jid) / "priors.pkl", priors)
-            storage.write_pickle(job_dir(jid) / "prepared.pkl", kept)
+            payloads = [(storage.unit_path(settings().storage_dir, jid, u.building.id), u) for u in units]
+            storage.write_pickles([*payloads, (job_dir(jid) / "priors.pkl", priors),
+                                   (job_dir(jid) / "prepared.pkl", kept)])  # fmt: skip
         except TRANSIENT:
             raise
         except Exception as exc:  # bad input, or a stage that cannot go on: the job fails
@@ -348,6 +351,7 @@ def run_unit(job_id: str, building_gml_id: str, *, task_id: str) -> str:
         else:  # the unit becomes successful in this transaction
             model = job.city_model_id
             store_building_result(s, job_id=jid, model_id=model, result=result, priors=priors, commit=False)
+            keep_result(jid, result)  # for the finish (`service_results`); a dismissal waits for it
         s.commit()
     after_units(jid)
     return "failed" if isinstance(result, UnitFailure) else "stored"
@@ -356,9 +360,10 @@ def run_unit(job_id: str, building_gml_id: str, *, task_id: str) -> str:
 # -- finish --------------------------------------------------------------------------------------
 def _stored_results(
     s: Session, job: jobs.JobRecord, kept: Prepared, out: Path
-) -> tuple[list[BuildingResult], list[UnitFailure]]:
-    """The job's stored results, plan order, tiles written into `out` and dropped from memory; and
-    its failed units (`UnitFailure`)."""
+) -> tuple[list[BuildingResult], list[UnitFailure], int]:
+    """The job's stored results, plan order, tiles in `out` and dropped from memory: each as its
+    unit task kept it (`service_results`), else loaded from PostGIS; its failed units
+    (`UnitFailure`); how many were loaded from PostGIS."""
     rows = s.execute(
         text(
             "SELECT b.gml_id, u.status, u.error FROM job_unit u JOIN building b ON b.id = u.building_id "
@@ -369,17 +374,23 @@ def _stored_results(
     state = {g: (st, err) for g, st, err in rows}
     results: list[BuildingResult] = []
     failures: list[UnitFailure] = []
+    loaded = 0
     for u in kept.planned.units:
         st, err = state.get(u.building.id, ("missing", None))
         if st == "successful":
             gml_id = u.building.id
+            mine = kept_result(job.id, gml_id, out)
+            if mine is not None:
+                results.append(mine)
+                continue
             r = load_building_result(s, job_id=job.id, model_id=job.city_model_id, building_gml_id=gml_id)
             for tile in r.tiles:
                 write_tile(out, tile)
             results.append(without_pixels(r))
+            loaded += 1
         elif st == "failed":
             failures.append(UnitFailure(u.building.id, err or "failed"))
-    return results, failures
+    return results, failures, loaded
 
 
 def finish_job(job_id: str) -> str:
@@ -401,12 +412,14 @@ def finish_job(job_id: str) -> str:
                 return "failed"
             jobs.set_stage(s, job_id=jid, stage="finish")
             s.commit()
+        t0, c0 = time.perf_counter(), time.process_time()
+        parts: dict[str, float] = {}  # wall seconds of the finish's parts (its `finish-parts` line)
         kept: Prepared = storage.read_pickle(job_dir(jid) / "prepared.pkl")
         out, build = job_dir(jid) / "results", job_dir(jid) / f".tmp-results-{uuid.uuid4().hex}"
         try:
             build.mkdir(parents=True)
             with Session(engine()) as s:
-                results, failures = _stored_results(s, job, kept, build)
+                results, failures, n_loaded = _stored_results(s, job, kept, build)
                 units_s = s.execute(
                     text(
                         "SELECT EXTRACT(EPOCH FROM max(finished_at) - min(started_at)) FROM job_unit "
@@ -415,6 +428,7 @@ def finish_job(job_id: str) -> str:
                     {"j": jid},
                 ).scalar()
             timings = {**kept.timings, "units": float(units_s or 0.0)}
+            parts["gather"] = time.perf_counter() - t0
             options = RunOptions.from_dict(job.options)
             finish(build, kept.ingested, kept.calibrated, kept.oriented, kept.planned, results, failures,
                    options, timings, package=kept.package)
@@ -422,12 +436,19 @@ def finish_job(job_id: str) -> str:
             os.replace(build, out)
         finally:
             shutil.rmtree(build, ignore_errors=True)
+        parts["write"] = time.perf_counter() - t0 - parts["gather"]
         storage.zip_folder(out, job_dir(jid) / "results.zip")
+        parts["zip"] = time.perf_counter() - t0 - parts["gather"] - parts["write"]
         mounting = json.loads((out / "orientation.json").read_text(encoding="utf-8")).get("mounting")
         with Session(engine()) as s:
             jobs.set_job_results(s, job_id=jid, location=str(out), timings_s=timings, mounting=mounting)
             s.commit()
-        # the unit payloads served their purpose (results and rows are written)
+        # the unit payloads and kept results served their purpose (results and rows are written)
         shutil.rmtree(job_dir(jid) / "units", ignore_errors=True)
+        shutil.rmtree(kept_dir(jid), ignore_errors=True)
         (job_dir(jid) / "priors.pkl").unlink(missing_ok=True)
+    line = {"job": str(jid), **{k: round(v, 3) for k, v in parts.items()}, "kept": len(results) - n_loaded,
+            "loaded": n_loaded, "wall_s": round(time.perf_counter() - t0, 3),
+            "cpu_s": round(time.process_time() - c0, 3)}  # fmt: skip
+    log.info("finish-parts %s", json.dumps(line))
     return "written"

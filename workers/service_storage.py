@@ -8,6 +8,7 @@ paths and files:
 jobs/<job id>/units/<safe name>.pkl   a planned `BuildingUnit` (pickle)
 jobs/<job id>/prepared.pkl            what the prepare task keeps for finish
 jobs/<job id>/priors.pkl              manifest-only prior pose per frame index (`frame_pose`)
+jobs/<job id>/kept/                   the units' tiles and results without pixels, for finish
 jobs/<job id>/results/                the results folder; results.zip: the same, zipped
 ```
 
@@ -23,6 +24,8 @@ import pickle
 import re
 import uuid
 import zipfile
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +37,7 @@ __all__ = [
     "unit_path",
     "write_atomic",
     "write_pickle",
+    "write_pickles",
     "zip_folder",
 ]
 
@@ -85,6 +89,15 @@ def write_atomic(path: Path, data: bytes) -> None:
 def write_pickle(path: Path, obj: Any) -> None:
     """Pickle `obj` into `path`, atomically."""
     write_atomic(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def write_pickles(items: Iterable[tuple[Path, Any]], threads: int = 8) -> None:
+    """`write_pickle(path, obj)` for each item, `threads` at a time (their writes and `fsync`s,
+    which release the GIL, overlap: a job's units are written in a fraction of the time one by
+    one takes). Raises the first error."""
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for _ in pool.map(lambda item: write_pickle(*item), items):
+            pass
 
 
 def read_pickle(path: Path) -> Any:

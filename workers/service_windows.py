@@ -8,7 +8,8 @@ task as `citytherm run` merges them (`sequence.merge_windows`).
 How (`celery_window_map`, the prepare task's `map_windows`): the prepare task writes every window
 task to `jobs/<id>/windows/<k>.task.pkl` and queues `citytherm.orient_window(job id, k)` for each
 (ids only); then it works through the windows itself, in order, taking every window no other worker
-holds, and waits for the others. Whoever runs window k holds the session-level advisory lock
+holds, and waits for the others (looking for their results every `LOOK_S`, trying their locks
+every `POLL_S`). Whoever runs window k holds the session-level advisory lock
 `citytherm-window-<k>:<job id>` (`service_process.job_lock`) and writes
 `jobs/<id>/windows/<k>.result.pkl` atomically before releasing it; a window whose result exists is
 never run again; each run of a window logs a `window-span {json}` line (window, job, process, start
@@ -42,8 +43,12 @@ from workers.service_process import engine, job_dir, job_lock, send
 
 log = logging.getLogger(__name__)
 
-#: seconds between two looks at windows other workers hold
+#: seconds between two tries of the locks of windows other workers hold (a dead holder's lock is
+#: free then) ...
 POLL_S = 0.2
+#: ... and between two looks for their results on the storage (no database query), so that the
+#: merge follows the last window at once
+LOOK_S = 0.02
 
 
 def windows_dir(job_id: uuid.UUID) -> Path:
@@ -87,6 +92,17 @@ def _take(
     return done
 
 
+def _until_a_result(job_id: uuid.UUID, pending: list[int], wait_s: float) -> None:
+    """Sleep until one of the `pending` windows has a stored result, at most `wait_s` seconds
+    (a look every `LOOK_S`)."""
+    end = time.monotonic() + wait_s
+    while not any(_result_path(job_id, k).exists() for k in pending):
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(LOOK_S, left))
+
+
 def celery_window_map(
     job_id: uuid.UUID, poll_s: float = POLL_S, idle: Callable[[], None] | None = None
 ) -> WindowMap:
@@ -120,7 +136,7 @@ def celery_window_map(
                         waiting, call = None, waiting
                         call()
                     else:
-                        time.sleep(poll_s)
+                        _until_a_result(job_id, [t.index for t in tasks if t.index not in results], poll_s)
         finally:  # merged, or the stage failed: window tasks still queued find nothing to do
             shutil.rmtree(windows_dir(job_id), ignore_errors=True)
         for t in tasks:

@@ -48,10 +48,12 @@ def dismiss(session: Session, *, job_id: uuid.UUID) -> None:
     tasks = unit_task_ids(session, job_id=job_id) if job.status not in FINAL_STATES else []
     dismiss_job(session, job_id=job_id)
     session.commit()
-    # a dismissed job never finishes: its unit payloads go now (a queued unit finds the job
-    # dismissed before it would read one; the stored results stay)
+    # a dismissed job never finishes: its unit payloads and the results its units kept for the
+    # finish go now (a queued unit finds the job dismissed before it would read one; the stored
+    # results stay)
     folder = job_dir(Settings().storage_dir, job_id)
     shutil.rmtree(folder / "units", ignore_errors=True)
+    shutil.rmtree(folder / "kept", ignore_errors=True)
     for name in ("priors.pkl", "prepared.pkl"):
         (folder / name).unlink(missing_ok=True)
     queued = [t for t, status in tasks if status == "accepted"]

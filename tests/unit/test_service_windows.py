@@ -102,6 +102,35 @@ def test_a_window_another_worker_holds_is_waited_for_and_not_run_twice(env) -> N
     assert got == [FakeResult(0, 0), FakeResult(1, -1), FakeResult(2, 4)]
 
 
+def test_a_result_another_worker_stored_is_taken_without_waiting_for_the_next_lock_try(
+    env, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    locks, _, jid = env
+    locks.held.add("window-1")  # another worker runs window 1, stores it, keeps its lock a while
+    stored = threading.Event()
+    real_sleep = time.sleep
+
+    def other_worker() -> None:
+        real_sleep(0.2)
+        storage.write_pickle(sw._result_path(jid, 1), FakeResult(1, -1))
+        stored.set()
+
+    naps: list[float] = []
+
+    def nap(s: float) -> None:  # what the waiting side asks for (briefly slept here)
+        naps.append(s)
+        real_sleep(min(s, 0.01))
+
+    monkeypatch.setattr(sw.time, "sleep", nap)
+    threading.Thread(target=other_worker).start()
+    calls: list[int] = []
+    got = list(sw.celery_window_map(jid, poll_s=60.0)(counting(calls), [FakeWindow(0), FakeWindow(1)]))
+    locks.held.clear()
+    assert stored.is_set() and calls == [0]
+    assert got == [FakeResult(0, 0), FakeResult(1, -1)]
+    assert naps and max(naps) <= sw.LOOK_S  # looked for the file, never slept a lock try's interval
+
+
 def test_a_window_whose_worker_died_is_run_here(env) -> None:
     locks, _, jid = env
     locks.held.add("window-0")
