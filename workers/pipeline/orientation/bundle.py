@@ -51,6 +51,7 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, project_jacobian, step_scale
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.bundle_edges import stacked_edge_equations
 from workers.pipeline.orientation.bundle_system import (
     banded_width,
     block_sums,
@@ -64,7 +65,6 @@ from workers.pipeline.orientation.edge_observations import (
     FrameWireframes,
     edge_support,
     frame_edges,
-    normal_equations,
 )
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
@@ -110,6 +110,7 @@ def bundle_adjust(
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
     prior_options: PriorOptions = PriorOptions(),
+    give_up_sigma0: float = float("inf"),
 ) -> BundleResult:
     """Adjust the poses of `frames` from `start` (see the module docstring).
 
@@ -128,10 +129,15 @@ def bundle_adjust(
         raycaster: the scene (hidden-edge removal).
         options, fit_options, edge_options, feature_options: parameters.
         prior_options: the null shift of the final edge support (`null_support`).
+        give_up_sigma0: when the ties' σ0 of unit weight at the end of the first phase (before
+            the outlier removal) exceeds this, the polish is skipped and the result returned as
+            it stands, without the edge figures (`edge_support` ... empty; `block.adjust_block`:
+            the block is tracked again from these poses anyway).
     """
     with single_threaded_blas():  # small dense algebra: OpenBLAS threads only spin (bundle_system)
         return _adjust(camera, frames, images, start, prior, frame_info, common_info, tracks, wireframe,
-                       raycaster, options, fit_options, edge_options, feature_options, prior_options)
+                       raycaster, options, fit_options, edge_options, feature_options, prior_options,
+                       give_up_sigma0)
 
 
 def _adjust(
@@ -139,7 +145,7 @@ def _adjust(
     prior: Mapping[int, Pose], frame_info: Mapping[int, np.ndarray], common_info: np.ndarray | None,
     tracks: Tracks, wireframe: Wireframe | None, raycaster: RayCaster, options: BundleOptions,
     fit_options: FrameFitOptions, edge_options: EdgeOptions, feature_options: FeatureOptions,
-    prior_options: PriorOptions,
+    prior_options: PriorOptions, give_up_sigma0: float = float("inf"),
 ) -> BundleResult:
     """`bundle_adjust`."""
     frames = list(frames)
@@ -159,7 +165,7 @@ def _adjust(
     band = banded_width(t_obs, f_obs, len(X))
     common = np.zeros(6)
     polish, k_phase = False, 0
-    converged = True
+    converged, gave_up = True, False
     for it in range(options.iterations + options.polish_iterations):
         R_e = max(fit_options.edge_radius_min_px, options.edge_radius_start_px * options.radius_decay ** it)
         use = _tied(inl, t_obs, len(X), options.min_track_observations)
@@ -188,14 +194,20 @@ def _adjust(
         if polish and (done or k_phase >= options.polish_iterations):
             break
         if not polish and (done or k_phase >= options.iterations):
+            sigma0 = _tie_figures(camera, poses, frames, slot, f_obs, t_obs, uv_obs, X, options)[3]
+            if sigma0 > give_up_sigma0:
+                gave_up = True  # tracked again from here (`give_up_sigma0`)
+                break
             polish, k_phase = True, 0
             r = _residuals(camera, poses, frames, f_obs, t_obs, uv_obs, X)
             inl = np.linalg.norm(r, axis=1) <= options.outlier_px
     # figures at the final poses
     inl, ties, tie_rms, sigma0 = _tie_figures(camera, poses, frames, slot, f_obs, t_obs, uv_obs, X, options)
-    edge_rms, support, null, matched = _edge_figures(camera, wf, raycaster, edges, poses,  # type: ignore[arg-type]
-                                                     edge_options, fit_options, prior_options.null_shift_px,
-                                                     options.visibility_reuse_px)
+    edge_rms, support, null, matched = {}, {}, {}, {}
+    if not gave_up:
+        edge_rms, support, null, matched = _edge_figures(
+            camera, wf, raycaster, edges, poses, edge_options, fit_options,  # type: ignore[arg-type]
+            prior_options.null_shift_px, options.visibility_reuse_px)
     cov, factored = _covariances(S, frames, slot, sigma0)
     return BundleResult(poses=poses, covariance=cov, ties=ties, tie_rms_px=tie_rms, edge_rms_px=edge_rms,
                         edge_support=support, null_support=null, matched_edges=matched, points=X, inlier=inl,
@@ -258,21 +270,22 @@ def _add_edge_equations(
 ) -> None:
     """Add the model-edge normal equations of every frame (search radius `R_e`, iteration `it`;
     visibility recomputed every `revisibility_every` iterations) to the frames' blocks of the
-    reduced system `S`, `b` in place, weighted by `edge_weight`."""
+    reduced system `S`, `b` in place, weighted by `edge_weight` (all frames at once,
+    `bundle_edges.stacked_edge_equations`)."""
     fo_it = replace(fit_options, tukey_min_px=max(fit_options.tukey_min_px, R_e / 3))
-    none = np.zeros((0, 2))
-    zero6 = np.zeros((6, 6))
+    used = []
     for f, ed in edges.items():
         if it % options.revisibility_every == 0 and it > 0:
             ed.vis = wireframe.visible(f, poses[f], raycaster, edge_options, fit_options.max_samples,
                                        options.visibility_reuse_px)
-        if ed.vis is None or len(ed.vis.points) < fit_options.min_samples:
-            continue
-        He, ge, *_ = normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
-                                      fit_options.point_radius_min_px, poses[f], zero6, fo_it)
+        if ed.vis is not None and len(ed.vis.points) >= fit_options.min_samples:
+            used.append(f)
+    H, g = stacked_edge_equations(camera, [poses[f] for f in used], [edges[f].vis for f in used],
+                                  [edges[f].feats for f in used], R_e, fo_it)
+    for f, Hf, gf in zip(used, H, g, strict=True):
         k = 6 * slot[f]
-        S[k:k + 6, k:k + 6] += options.edge_weight * He
-        b[k:k + 6] += options.edge_weight * ge
+        S[k:k + 6, k:k + 6] += options.edge_weight * Hf
+        b[k:k + 6] += options.edge_weight * gf
 
 
 def _point_steps(V_inv: np.ndarray, Wt: np.ndarray, bt: np.ndarray, dpose: np.ndarray,
