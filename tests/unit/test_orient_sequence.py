@@ -203,7 +203,8 @@ def test_the_stacked_edge_equations_are_the_frame_by_frame_ones(drive) -> None:
     res, images, prior, _, caster = drive
     cam, fo = res.manifest.camera, FrameFitOptions()
     wf = FrameWireframes(mesh_wireframe(caster.mesh), cam)
-    edges = frame_edges(cam, wf, caster, list(range(N)), images, prior, 40.0, fo, EdgeOptions(), FeatureOptions())
+    edges = frame_edges(cam, wf, caster, list(range(N)), images, prior, 40.0, fo, EdgeOptions(),
+                        FeatureOptions())
     used = [f for f, ed in edges.items() if len(ed.vis.points) >= fo.min_samples]
     assert len(used) > N // 2
     for R_e in (16.0, 3.0):

@@ -30,7 +30,7 @@ from workers.pipeline.orientation.features import ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.wireframe import VisibleWireframe
 
-__all__ = ["stacked_edge_equations"]
+__all__ = ["edge_equations", "stacked_edge_equations"]
 
 
 def _project_jacobian(
@@ -107,6 +107,27 @@ def stacked_edge_equations(
     Aw = A * w_e[:, None]
     H = np.add.reduceat(Aw[:, :, None] * A[:, None, :], starts, axis=0)
     g = np.add.reduceat(Aw * off[:, None], starts, axis=0)
+    return H, g
+
+
+def edge_equations(
+    camera: Camera,
+    poses: Sequence[Pose],
+    vis: Sequence[VisibleWireframe],
+    feats: Sequence[ImageFeatures],
+    R_e: float,
+    options: FrameFitOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`stacked_edge_equations` of the frames with at least `options.min_samples` visible
+    samples; zeros `(6, 6)`, `(6,)` for the others (which observe nothing), in the given order.
+
+    Returns (H `(K, 6, 6)`, g `(K, 6)`)."""
+    K = len(poses)
+    H, g = np.zeros((K, 6, 6)), np.zeros((K, 6))
+    used = [k for k in range(K) if len(vis[k].points) >= options.min_samples]
+    if used:
+        H[used], g[used] = stacked_edge_equations(camera, [poses[k] for k in used], [vis[k] for k in used],
+                                                  [feats[k] for k in used], R_e, options)
     return H, g
 
 
