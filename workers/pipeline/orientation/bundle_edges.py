@@ -30,15 +30,30 @@ from workers.pipeline.orientation.features import ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.wireframe import VisibleWireframe
 
-__all__ = ["edge_equations", "stacked_edge_equations"]
+__all__ = [
+    "edge_equations",
+    "stacked_edge_equations",
+    "stacked_project",
+    "stacked_project_jacobian",
+]
 
 
-def _project_jacobian(
+def stacked_project(
     camera: Camera, R: np.ndarray, C: np.ndarray, X: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
+    """`Pose.project` with a pose per point: rotations `R` `(N, 3, 3)` (world from camera),
+    centres `C` `(N, 3)`, world points `X` `(N, 3)` -> (pixels `(N, 2)`, NaN behind the camera;
+    depth `z_c` `(N,)`)."""
+    xc = np.einsum("ni,nij->nj", X - C, R)
+    return camera.project(xc), xc[:, 2]
+
+
+def stacked_project_jacobian(
+    camera: Camera, R: np.ndarray, C: np.ndarray, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`pose_increments.project_jacobian` with a pose per point: rotations `R` `(N, 3, 3)`
     (world from camera), centres `C` `(N, 3)`, world points `X` `(N, 3)` -> (pixels `(N, 2)`,
-    `∂uv/∂δ` `(N, 2, 6)`)."""
+    depth `(N,)`, `∂uv/∂δ` `(N, 2, 6)`)."""
     xc = np.einsum("ni,nij->nj", X - C, R)
     x, y, z = xc[:, 0], xc[:, 1], np.maximum(xc[:, 2], 1e-6)
     ab = np.stack([x / z, y / z], axis=1)
@@ -57,7 +72,7 @@ def _project_jacobian(
     dxc[:, 1, 0], dxc[:, 1, 2] = z, -x
     dxc[:, 2, 0], dxc[:, 2, 1] = -y, x
     dxc[:, :, 3:] = -R.transpose(0, 2, 1)
-    return uv, D @ dab @ dxc
+    return uv, xc[:, 2], D @ dab @ dxc
 
 
 def stacked_edge_equations(
@@ -85,7 +100,7 @@ def stacked_edge_equations(
     Wgt = np.concatenate([v.weight for v in vis])
     R = np.stack([p.R_world_from_cam for p in poses])[fid]
     C = np.stack([p.center for p in poses])[fid]
-    uv, J = _project_jacobian(camera, R, C, P)
+    uv, _, J = stacked_project_jacobian(camera, R, C, P)
     # image normals of the projected edges (`edge_observations.image_normals`)
     xc2 = np.einsum("ni,nij->nj", P + 0.05 * Dir - C, R)
     t = camera.project(xc2) - uv
