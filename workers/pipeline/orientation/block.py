@@ -80,11 +80,6 @@ class BlockOptions:
     # unit weight above this): tracked from poses too far off, the warps were wrong (σ0 0.9 on a
     # drive calibrated 4° off, 0.3–0.5 otherwise)
     retrack_sigma0: float = 0.8
-    # the first adjustment skips its polish (outlier removal and the iterations after it) when the
-    # ties' σ0 before it exceeds `retrack_sigma0` × this: the block is tracked again from its poses
-    # anyway (the 300-frame NRW drive: σ0 1.8–2.2 at the end of every window's first pass, 0.3–0.6
-    # after the second; the polish was 8 of the first pass's 20 iterations)
-    give_up_factor: float = 1.5
     # the block found the model around a frame (`anchoring`): mean edge support of the frames
     # within this many frames that see model edges, and its gain over their null support
     anchor_frames: int = 10
@@ -168,9 +163,8 @@ def adjust_block(
     frame_info = dict.fromkeys(frames, white)
     common_info = _floored(prior_info, options)
     poses = dict(start)
-    for k in range(2):
+    for _ in range(2):
         tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks)
-        give_up = options.retrack_sigma0 * options.give_up_factor if k == 0 else float("inf")
         res = bundle_adjust(
             camera,
             frames,
@@ -187,7 +181,6 @@ def adjust_block(
             edge_options,
             feature_options,
             prior_options,
-            give_up,
         )
         poses = res.poses
         if res.sigma0 <= options.retrack_sigma0:

@@ -114,7 +114,6 @@ def bundle_adjust(
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
     prior_options: PriorOptions = PriorOptions(),
-    give_up_sigma0: float = float("inf"),
 ) -> BundleResult:
     """Adjust the poses of `frames` from `start` (see the module docstring).
 
@@ -133,15 +132,10 @@ def bundle_adjust(
         raycaster: the scene (hidden-edge removal).
         options, fit_options, edge_options, feature_options: parameters.
         prior_options: the null shift of the final edge support (`null_support`).
-        give_up_sigma0: when the ties' σ0 of unit weight at the end of the first phase (before
-            the outlier removal) exceeds this, the polish is skipped and the result returned as
-            it stands, without the edge figures (`edge_support` ... empty; `block.adjust_block`:
-            the block is tracked again from these poses anyway).
     """
     with single_threaded_blas():  # small dense algebra: OpenBLAS threads only spin (bundle_system)
         return _adjust(camera, frames, images, start, prior, frame_info, common_info, tracks, wireframe,
-                       raycaster, options, fit_options, edge_options, feature_options, prior_options,
-                       give_up_sigma0)
+                       raycaster, options, fit_options, edge_options, feature_options, prior_options)
 
 
 def _adjust(
@@ -149,7 +143,7 @@ def _adjust(
     prior: Mapping[int, Pose], frame_info: Mapping[int, np.ndarray], common_info: np.ndarray | None,
     tracks: Tracks, wireframe: Wireframe | None, raycaster: RayCaster, options: BundleOptions,
     fit_options: FrameFitOptions, edge_options: EdgeOptions, feature_options: FeatureOptions,
-    prior_options: PriorOptions, give_up_sigma0: float = float("inf"),
+    prior_options: PriorOptions,
 ) -> BundleResult:
     """`bundle_adjust`."""
     frames = list(frames)
@@ -169,7 +163,7 @@ def _adjust(
     band = banded_width(t_obs, f_obs, len(X))
     common = np.zeros(6)
     polish, k_phase = False, 0
-    converged, gave_up = True, False
+    converged = True
     for it in range(options.iterations + options.polish_iterations):
         R_e = max(fit_options.edge_radius_min_px, options.edge_radius_start_px * options.radius_decay ** it)
         use = _tied(inl, t_obs, len(X), options.min_track_observations)
@@ -198,20 +192,14 @@ def _adjust(
         if polish and (done or k_phase >= options.polish_iterations):
             break
         if not polish and (done or k_phase >= options.iterations):
-            sigma0 = _tie_figures(camera, poses, frames, slot, f_obs, t_obs, uv_obs, X, options)[3]
-            if sigma0 > give_up_sigma0:
-                gave_up = True  # tracked again from here (`give_up_sigma0`)
-                break
             polish, k_phase = True, 0
             r = _residuals(camera, poses, frames, f_obs, t_obs, uv_obs, X)
             inl = np.linalg.norm(r, axis=1) <= options.outlier_px
     # figures at the final poses
     inl, ties, tie_rms, sigma0 = _tie_figures(camera, poses, frames, slot, f_obs, t_obs, uv_obs, X, options)
-    edge_rms, support, null, matched = {}, {}, {}, {}
-    if not gave_up:
-        edge_rms, support, null, matched = _edge_figures(
-            camera, wf, raycaster, edges, poses, edge_options, fit_options,  # type: ignore[arg-type]
-            prior_options.null_shift_px, options.visibility_reuse_px)
+    edge_rms, support, null, matched = _edge_figures(camera, wf, raycaster, edges, poses,  # type: ignore[arg-type]
+                                                     edge_options, fit_options, prior_options.null_shift_px,
+                                                     options.visibility_reuse_px)
     cov, factored = _covariances(S, frames, slot, sigma0)
     return BundleResult(poses=poses, covariance=cov, ties=ties, tie_rms_px=tie_rms, edge_rms_px=edge_rms,
                         edge_support=support, null_support=null, matched_edges=matched, points=X, inlier=inl,
