@@ -12,7 +12,9 @@ operations on a few hundred samples each per window, the largest part of the seq
 orientation's time. Here the samples of all frames are stacked, projected, searched and weighted
 in one pass; only the gradient lookup (`cv2.remap` on each frame's own gradient image) stays
 per frame. The arithmetic is the same as `normal_equations` sample by sample (same formulas,
-same order of the per-sample operations), so the results agree to rounding.
+same order of the per-sample operations), so the results agree to rounding. The calibration and
+the joint fit take the same equations (`edge_equations`); the bundle's tie points are projected
+the same way, a pose per observation (`stacked_project`, `stacked_project_jacobian`).
 """
 
 from __future__ import annotations
