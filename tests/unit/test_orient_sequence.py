@@ -186,3 +186,33 @@ def test_the_bundle_fits_the_model_edges_without_ties(drive) -> None:
     assert out.converged and len(out.edge_support) > N // 2
     assert np.mean(list(out.edge_support.values())) > 0.7
     assert np.median(after) < 0.3 * np.median(before)
+
+
+def test_the_stacked_edge_equations_are_the_frame_by_frame_ones(drive) -> None:
+    """`bundle_edges.stacked_edge_equations` (all frames at once, the bundle's edge term) gives
+    each frame's `edge_observations.normal_equations` (no corners, no prior) to rounding, at the
+    start radius and at the final one."""
+    from dataclasses import replace
+
+    from workers.pipeline.orientation.bundle_edges import stacked_edge_equations
+    from workers.pipeline.orientation.edge_observations import FrameWireframes, frame_edges, normal_equations
+    from workers.pipeline.orientation.features import FeatureOptions
+    from workers.pipeline.orientation.fit_options import FrameFitOptions
+    from workers.pipeline.orientation.wireframe import EdgeOptions, mesh_wireframe
+
+    res, images, prior, _, caster = drive
+    cam, fo = res.manifest.camera, FrameFitOptions()
+    wf = FrameWireframes(mesh_wireframe(caster.mesh), cam)
+    edges = frame_edges(cam, wf, caster, list(range(N)), images, prior, 40.0, fo, EdgeOptions(),
+                        FeatureOptions())
+    used = [f for f, ed in edges.items() if len(ed.vis.points) >= fo.min_samples]
+    assert len(used) > N // 2
+    for R_e in (16.0, 3.0):
+        fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
+        H, g = stacked_edge_equations(cam, [prior[f] for f in used], [edges[f].vis for f in used],
+                                      [edges[f].feats for f in used], R_e, fo_it)
+        for k, f in enumerate(used):
+            He, ge, *_ = normal_equations(cam, prior[f], edges[f].vis, edges[f].feats, np.zeros((0, 2)), R_e,
+                                          fo.point_radius_min_px, prior[f], np.zeros((6, 6)), fo_it)
+            np.testing.assert_allclose(H[k], He, rtol=1e-6, atol=1e-9 * np.abs(He).max())
+            np.testing.assert_allclose(g[k], ge, rtol=1e-6, atol=1e-9 * np.abs(ge).max() + 1e-12)

@@ -49,8 +49,13 @@ import numpy as np
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
-from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, project_jacobian, step_scale
+from workers.pipeline.geometry.pose_increments import apply_delta, pose_delta, step_scale
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.bundle_edges import (
+    stacked_edge_equations,
+    stacked_project,
+    stacked_project_jacobian,
+)
 from workers.pipeline.orientation.bundle_system import (
     banded_width,
     block_sums,
@@ -64,7 +69,6 @@ from workers.pipeline.orientation.edge_observations import (
     FrameWireframes,
     edge_support,
     frame_edges,
-    normal_equations,
 )
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
@@ -258,21 +262,22 @@ def _add_edge_equations(
 ) -> None:
     """Add the model-edge normal equations of every frame (search radius `R_e`, iteration `it`;
     visibility recomputed every `revisibility_every` iterations) to the frames' blocks of the
-    reduced system `S`, `b` in place, weighted by `edge_weight`."""
+    reduced system `S`, `b` in place, weighted by `edge_weight` (all frames at once,
+    `bundle_edges.stacked_edge_equations`)."""
     fo_it = replace(fit_options, tukey_min_px=max(fit_options.tukey_min_px, R_e / 3))
-    none = np.zeros((0, 2))
-    zero6 = np.zeros((6, 6))
+    used = []
     for f, ed in edges.items():
         if it % options.revisibility_every == 0 and it > 0:
             ed.vis = wireframe.visible(f, poses[f], raycaster, edge_options, fit_options.max_samples,
                                        options.visibility_reuse_px)
-        if ed.vis is None or len(ed.vis.points) < fit_options.min_samples:
-            continue
-        He, ge, *_ = normal_equations(camera, poses[f], ed.vis, ed.feats, none, R_e,
-                                      fit_options.point_radius_min_px, poses[f], zero6, fo_it)
+        if ed.vis is not None and len(ed.vis.points) >= fit_options.min_samples:
+            used.append(f)
+    H, g = stacked_edge_equations(camera, [poses[f] for f in used], [edges[f].vis for f in used],
+                                  [edges[f].feats for f in used], R_e, fo_it)
+    for f, Hf, gf in zip(used, H, g, strict=True):
         k = 6 * slot[f]
-        S[k:k + 6, k:k + 6] += options.edge_weight * He
-        b[k:k + 6] += options.edge_weight * ge
+        S[k:k + 6, k:k + 6] += options.edge_weight * Hf
+        b[k:k + 6] += options.edge_weight * gf
 
 
 def _point_steps(V_inv: np.ndarray, Wt: np.ndarray, bt: np.ndarray, dpose: np.ndarray,
@@ -340,17 +345,20 @@ def _covariances(S: np.ndarray, frames: Sequence[int], slot: Mapping[int, int],
     return {f: blocks[slot[f]] * s2 for f in frames}, ok
 
 
+def _pose_arrays(poses: Mapping[int, Pose], frames: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations `(n, 3, 3)` (world from camera) and centres `(n, 3)` of `frames`, in block order."""
+    return np.stack([poses[f].R_world_from_cam for f in frames]), np.stack([poses[f].center for f in frames])
+
+
 def _residuals(camera: Camera, poses: Mapping[int, Pose], frames: Sequence[int], f_obs: np.ndarray,
                t_obs: np.ndarray, uv_obs: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Tie residuals `(M, 2)` px (observed − projected); NaN-free (behind: large)."""
-    r = np.full((len(f_obs), 2), 1e6)
-    for k, f in enumerate(frames):
-        m = f_obs == k
-        if m.any():
-            uv, z = poses[f].project(camera, X[t_obs[m]])
-            rr = uv_obs[m] - uv
-            rr[~(np.isfinite(rr).all(axis=1) & (z > 0))] = 1e6
-            r[m] = rr
+    if len(f_obs) == 0:
+        return np.full((0, 2), 1e6)
+    Rs, Cs = _pose_arrays(poses, frames)
+    uv, z = stacked_project(camera, Rs[f_obs], Cs[f_obs], X[t_obs])
+    r = uv_obs - uv
+    r[~(np.isfinite(r).all(axis=1) & (z > 0))] = 1e6
     return r
 
 
@@ -397,17 +405,9 @@ def _normal_system(
     V += np.eye(3)[None] * options.point_step_sigma_m ** -2
     Wt = np.zeros((M, 6, 3))
     if M:
-        Jf = np.zeros((M, 2, 6))
-        e = np.zeros((M, 2))
-        depth = np.zeros(M)
-        for k, f in enumerate(frames):
-            m = np.flatnonzero(f_obs == k)
-            if len(m) == 0:
-                continue
-            uv, z, J = project_jacobian(camera, poses[f], X[t_obs[m]])
-            Jf[m] = J
-            e[m] = uv_obs[m] - uv
-            depth[m] = z
+        Rs, Cs = _pose_arrays(poses, frames)  # every observation at once
+        uv, depth, Jf = stacked_project_jacobian(camera, Rs[f_obs], Cs[f_obs], X[t_obs])
+        e = uv_obs - uv
         front = (depth >= options.min_depth_m) & np.isfinite(e).all(axis=1)
         e = np.where(front[:, None], np.nan_to_num(e, nan=0.0), 0.0)
         Jx = -Jf[:, :, 3:]

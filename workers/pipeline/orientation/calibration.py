@@ -63,6 +63,7 @@ from workers.pipeline.geometry.manifest import Accuracy, FrameSource
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.bundle_edges import edge_equations
 from workers.pipeline.orientation.calibration_delay import delay_search
 from workers.pipeline.orientation.calibration_frames import SampleOptions, sample_frames, start_sets
 from workers.pipeline.orientation.calibration_model import N_PARAMS, design, frame_designs, frame_motion
@@ -71,7 +72,6 @@ from workers.pipeline.orientation.edge_observations import (
     FrameWireframes,
     edge_support,
     frame_edges,
-    normal_equations,
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
@@ -374,8 +374,6 @@ def _adjust(
     theta = theta0.copy()
     eps = {f.index: np.zeros(6) for f in data}
     F = frame_noise_information(options.prior)
-    zero6 = np.zeros((6, 6))
-    none = np.zeros((0, 2))
     vis: dict[int, VisibleWireframe] = {}
     S = P.copy()
     for it in range(options.iterations):
@@ -388,11 +386,9 @@ def _adjust(
         S = P.copy()
         rhs = -P @ theta
         parts = {}
-        for f in data:
-            Hi, gi = zero6, np.zeros(6)
-            if len(vis[f.index].points) >= fo.min_samples:
-                Hi, gi, *_ = normal_equations(camera, poses[f.index], vis[f.index], f.feats, none, R_e,
-                                              fo.point_radius_min_px, poses[f.index], zero6, fo_it)
+        Hs, gs = edge_equations(camera, [poses[f.index] for f in data], [vis[f.index] for f in data],
+                                [f.feats for f in data], R_e, fo_it)  # all frames at once
+        for f, Hi, gi in zip(data, Hs, gs, strict=True):
             B = np.linalg.inv(Hi + F)
             c = gi - F @ eps[f.index]
             HB = Hi @ B

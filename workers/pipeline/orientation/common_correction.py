@@ -49,13 +49,13 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import apply_delta, bounded_step, pose_delta
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.bundle_edges import edge_equations
 from workers.pipeline.orientation.coarse import candidate_pose, shift_pose
 from workers.pipeline.orientation.edge_observations import (
     FrameWireframes,
     edge_support,
     frame_edges,
     image_normals,
-    normal_equations,
 )
 from workers.pipeline.orientation.features import FeatureOptions, ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
@@ -388,8 +388,6 @@ def _fine(
     delta = np.asarray(delta0, dtype=np.float64).copy()
     x = {fr.index: delta.copy() for fr in data}
     F = frame_noise_information(prior_options)
-    zero6 = np.zeros((6, 6))
-    none = np.zeros((0, 2))
     r0 = options.radius_start_px if radius_start is None else radius_start
     vis: dict[int, VisibleWireframe] = {}
     Hc = prior_info.copy()
@@ -401,13 +399,10 @@ def _fine(
         R_e = max(fo.edge_radius_min_px, r0 * options.radius_decay**it)
         fo_it = replace(fo, tukey_min_px=max(fo.tukey_min_px, R_e / 3))
         Hc = prior_info.copy()
+        Hs, gs = edge_equations(camera, [poses[fr.index] for fr in data], [vis[fr.index] for fr in data],
+                                [fr.feats for fr in data], R_e, fo_it)  # all frames at once
         blocks = {}
-        for fr in data:
-            v = vis[fr.index]
-            Hi, gi = zero6, np.zeros(6)
-            if len(v.points) >= fo.min_samples:
-                Hi, gi, *_ = normal_equations(camera, poses[fr.index], v, fr.feats, none, R_e,
-                                              fo.point_radius_min_px, poses[fr.index], zero6, fo_it)
+        for fr, Hi, gi in zip(data, Hs, gs, strict=True):
             Hc += Hi
             blocks[fr.index] = (Hi, gi)
         S = prior_info.copy()

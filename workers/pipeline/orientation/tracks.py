@@ -179,14 +179,20 @@ def _on_surface(camera: Camera, raycaster: RayCaster, pose: Pose, uv: np.ndarray
                 options: TrackOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Which pixels `uv` `(N, 2)` lie inside one model polygon (their ray and the four rays
     `boundary_px` around it meet the same polygon, not at grazing incidence) -> (ok `(N,)`,
-    points, polygons, normals)."""
-    X, poly, n = _ray_points(camera, raycaster, pose, uv)
+    points, polygons, normals). The four boundary rays are cast, in one call, only for the
+    pixels whose own ray passed."""
     d = camera.bearing(uv) @ pose.R_world_from_cam.T
+    hits = raycaster.cast(np.broadcast_to(pose.center, d.shape).copy(), d)
+    t = np.where(hits.hit, hits.t, 0.0)
+    n = hits.normal * np.where(np.sum(hits.normal * d, axis=1) > 0, -1.0, 1.0)[:, None]
+    X, poly = pose.center + t[:, None] * d, hits.polygon
     ok = (poly >= 0) & (np.abs(np.sum(n * d, axis=1)) >= options.min_incidence)
-    b = options.boundary_px
-    for off in ((b, 0.0), (-b, 0.0), (0.0, b), (0.0, -b)):
-        _, p2, _ = _ray_points(camera, raycaster, pose, uv + np.array(off))
-        ok &= p2 == poly
+    idx = np.flatnonzero(ok)
+    if len(idx):
+        b = options.boundary_px
+        offs = np.array([[b, 0.0], [-b, 0.0], [0.0, b], [0.0, -b]])
+        _, p2, _ = _ray_points(camera, raycaster, pose, (uv[idx][None] + offs[:, None]).reshape(-1, 2))
+        ok[idx] = np.all(p2.reshape(4, -1) == poly[idx], axis=0)
     return ok, X, poly, n
 
 
