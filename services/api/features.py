@@ -131,10 +131,12 @@ def _link(href: str, rel: str, title: str) -> dict[str, str]:
     return {"href": href, "rel": rel, "type": GEOJSON, "title": title}
 
 
-def _page_url(base: str, path: str, raw: Mapping[str, list[str]], limit: int, cursor: Cursor) -> str:
+def _page_url_prefix(base: str, path: str, raw: Mapping[str, list[str]], limit: int) -> str:
+    """The URL of another page of the same query up to its cursor's value (which, base64url
+    without padding, needs no quoting): the request's parameters, `limit`, `&cursor=`."""
     params = [(k, v[0]) for k, v in raw.items() if k not in ("cursor", "limit")]
-    params += [("limit", str(limit)), ("cursor", encode_cursor(cursor))]
-    return f"{base}{path}?{urlencode(params)}"
+    params.append(("limit", str(limit)))
+    return f"{base}{path}?{urlencode(params)}&cursor="
 
 
 def _legacy_crs(crs: Crs) -> str:
@@ -158,8 +160,9 @@ def items_document(
     """`GET /collections/{id}/items`: (the FeatureCollection as chunks of bytes, the output CRS,
     whether to stream it). Raises `NotFoundError` (collection) and `FeatureParamError` (400).
 
-    A page of at most `STREAM_ABOVE` features is fetched at once (its features' JSON texts joined,
-    never parsed: one chunk); a larger forward page is streamed from a server-side cursor."""
+    A page of at most `STREAM_ABOVE` features is fetched at once (its features' JSON texts joined
+    as the bytes PostgreSQL sent, never decoded nor parsed: one chunk); a larger forward page is
+    streamed from a server-side cursor."""
     c = _collection(collection_id)
     srid = features_sql.database_srid_cached(engine)
     q = parse_items_query(params, c, srid)
@@ -180,8 +183,8 @@ def items_document(
         sql = features_sql.page_sql(c, props, q.crs, from_sql, where, forward, q.limit, stored)
         page = _Page(db, c, q, props, srid, matched, base, path, params, self_url)
         if stream:
-            return page.chunks(db.stream(sql, binds)), q.crs, True
-        rows = db.rows(sql, binds)  # in key order: ascending, or descending before the cursor
+            return page.chunks(db.stream(sql, binds, raw_text=True)), q.crs, True
+        rows = db.rows(sql, binds, raw_text=True)  # in key order: ascending, or descending before the cursor
         more = len(rows) > q.limit  # one row more than a page: more after (forward) or before it
         rows = rows[: q.limit] if forward else rows[q.limit - 1 :: -1] if more else rows[::-1]
         texts = page.texts(rows)
@@ -194,7 +197,7 @@ def items_document(
         more_after=more if forward else True,
         more_before=cur is not None if forward else more,
     )  # fmt: skip
-    return iter([b"".join((_HEAD, ",".join(texts).encode(), tail))]), q.crs, False
+    return iter([b"".join((_HEAD, b",".join(texts), tail))]), q.crs, False
 
 
 class _Page:
@@ -217,15 +220,15 @@ class _Page:
         self.db, self.c, self.q, self.props, self.srid = db, c, q, props, srid
         self.matched, self.base, self.path, self.params, self.self_url = matched, base, path, params, self_url
 
-    def texts(self, rows: list[tuple]) -> list[str]:
-        """The feature texts of `rows` (key, text or None: a stored text of another definition, or
-        none), in their order; the missing ones written by PostgreSQL in one query (a feature
-        gone since the page's query is left out)."""
+    def texts(self, rows: list[tuple]) -> list[bytes]:
+        """The feature texts (UTF-8) of `rows` (key, text or None: a stored text of another
+        definition, or none), in their order; the missing ones written by PostgreSQL in one query
+        (a feature gone since the page's query is left out)."""
         missing = [r[0] for r in rows if r[1] is None]
         if not missing:
             return [r[1] for r in rows]
         sql = features_sql.features_by_key_sql(self.c, self.props, self.q.crs)
-        written = dict(self.db.rows(sql, {"keys": missing, "srid": self.srid}))
+        written = dict(self.db.rows(sql, {"keys": missing, "srid": self.srid}, raw_text=True))
         return [f if f is not None else written[k] for k, f in rows if f is not None or k in written]
 
     def tail(self, n: int, first: Any, last: Any, *, more_after: bool, more_before: bool) -> bytes:
@@ -251,12 +254,12 @@ class _Page:
                 if len(rows) % 500 == 0:
                     texts = self.texts(rows[-500:])
                     if texts:
-                        yield (("," if n else "") + ",".join(texts)).encode()
+                        yield (b"," if n else b"") + b",".join(texts)
                     n += len(texts)
             tail_rows = rows[len(rows) - len(rows) % 500 :]
             texts = self.texts(tail_rows)
             if texts:
-                yield (("," if n else "") + ",".join(texts)).encode()
+                yield (b"," if n else b"") + b",".join(texts)
             n += len(texts)
             if rows:
                 first, last = rows[0][0], rows[-1][0]
@@ -285,12 +288,13 @@ def _tail(
     `first` when `more_before`; keys as read, int or text), the legacy `crs` member, `}`."""
     links = [_link(self_url, "self", "this page")]
     key = str if c.key_kind == "uuid" else int
+    url = _page_url_prefix(base, path, params, q.limit)
     if more_after and last is not None:
         nxt = Cursor(key(last), True, matched, q.fingerprint)
-        links.append(_link(_page_url(base, path, params, q.limit, nxt), "next", "next page"))
+        links.append(_link(url + encode_cursor(nxt), "next", "next page"))
     if more_before and first is not None:
         prv = Cursor(key(first), False, matched, q.fingerprint)
-        links.append(_link(_page_url(base, path, params, q.limit, prv), "prev", "previous page"))
+        links.append(_link(url + encode_cursor(prv), "prev", "previous page"))
     links.append({"href": f"{base}/collections/{c.id}", "rel": "collection", "type": "application/json"})
     tail: dict[str, Any] = {"numberReturned": n}
     if matched is not None:
