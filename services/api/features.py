@@ -23,6 +23,7 @@ dicts (collections) and the bytes of GeoJSON documents (items), with their `Cont
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Iterator, Mapping
 from typing import Any
@@ -244,25 +245,20 @@ class _Page:
         connection at the end."""
         try:
             yield _HEAD
-            n, first, last, more_after = 0, None, None, False
-            rows: list[tuple] = []
-            for row in result:
-                if len(rows) == self.q.limit:
-                    more_after = True
+            rows = iter(result)
+            n, read, first, last = 0, 0, None, None
+            while read < self.q.limit:
+                batch = list(itertools.islice(rows, min(500, self.q.limit - read)))
+                if not batch:
                     break
-                rows.append(row)
-                if len(rows) % 500 == 0:
-                    texts = self.texts(rows[-500:])
-                    if texts:
-                        yield (b"," if n else b"") + b",".join(texts)
-                    n += len(texts)
-            tail_rows = rows[len(rows) - len(rows) % 500 :]
-            texts = self.texts(tail_rows)
-            if texts:
-                yield (b"," if n else b"") + b",".join(texts)
-            n += len(texts)
-            if rows:
-                first, last = rows[0][0], rows[-1][0]
+                read += len(batch)
+                first = batch[0][0] if first is None else first
+                last = batch[-1][0]
+                texts = self.texts(batch)
+                if texts:
+                    yield (b"," if n else b"") + b",".join(texts)
+                n += len(texts)
+            more_after = read == self.q.limit and next(rows, None) is not None
             yield self.tail(n, first, last, more_after=more_after, more_before=self.q.cursor is not None)
         finally:
             self.db.close()
