@@ -5,7 +5,8 @@ cursor of the `next` links), against `citytherm serve` over HTTP.
 Data: the replicated NRW model (`bench/citygml_io.make_replicated_model`: 87 shifted copies of the
 NRW LoD2 tile, ~9,500 buildings + parts, ~126,000 surfaces; `--copies 8` for a quick run) imported
 into a fresh bench database, with one job's thermal statistics for every surface written in SQL
-(as `tests/integration/test_api_features.py` does): one facade feature per surface.
+(as `tests/integration/test_api_features.py` does) and their feature texts (as `db.store` writes
+them with the statistics, `db.facade_features`): one facade feature per surface.
 
 Clients: threads, each with its own keep-alive connection of the standard library's
 `http.client` (`--client httpx`: httpx clients, as earlier versions of this bench; they cost
@@ -56,6 +57,7 @@ def load(url: str, path: Path) -> dict:
     from sqlalchemy import text
     from sqlalchemy.orm import Session
 
+    from db.facade_features import write_feature_texts
     from db.importer import import_citygml
     from db.session import make_engine
     from db.store import create_job
@@ -86,8 +88,10 @@ def load(url: str, path: Path) -> dict:
             ),
             {"j": job},
         )
+        write_feature_texts(c, "TRUE")  # as `db.store` does with the statistics it writes
     with engine.connect() as c:
-        c.execution_options(isolation_level="AUTOCOMMIT").execute(text("ANALYZE"))
+        # the texts were written by an UPDATE: its dead rows gone, as autovacuum leaves a database
+        c.execution_options(isolation_level="AUTOCOMMIT").execute(text("VACUUM ANALYZE"))
         facades = c.execute(text("SELECT count(*) FROM surface_thermal")).scalar_one()
     engine.dispose()
     return {"import_s": round(t_import, 1), "facades": int(facades)}

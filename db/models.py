@@ -447,6 +447,10 @@ class SurfaceThermal(Base):
     heat_loss_index: Mapped[float | None] = mapped_column(Double)
     windows: Mapped[int | None] = mapped_column(Integer)
     leaks: Mapped[int | None] = mapped_column(Integer)
+    #: the facade's GeoJSON Feature in CRS84 as the OGC API - Features service writes it, and the
+    #: fingerprint of the definition that wrote it (0012; `db.facade_features`)
+    feature: Mapped[str | None] = mapped_column(Text)
+    feature_spec: Mapped[int | None] = mapped_column(Integer)
 
 
 class ThermalAnomaly(Base):

@@ -4,8 +4,9 @@ In: a `Session`, the job id, the city model id and a `workers.pipeline.results.B
 (appearance with `ParameterizedTexture`s whose `image_uri` is a tile name, uint16 tiles, per-surface
 statistics in the radiometry unit, frame poses, anomalies). Out: rows in `appearance` (theme, job,
 building), `tex_image` (16-bit PNG bytes, size, radiometry, sha256), `surface_data`,
-`texture_param`, `surface_thermal` (kelvin), `frame_pose`, `thermal_anomaly`; the job unit marked
-successful when it exists.
+`texture_param`, `surface_thermal` (kelvin, with each facade's GeoJSON feature text:
+`db.facade_features`), `frame_pose`, `thermal_anomaly`; the job unit marked successful when it
+exists.
 
 Idempotent: the rows of (job, building) are deleted and written again inside one savepoint, under a
 transaction-level advisory lock on (job, building), and a partial unique index allows one job
@@ -29,6 +30,7 @@ from sqlalchemy.orm import Session
 
 from db.appearance_rows import AppearanceRows, collect_appearance_rows
 from db.errors import InputDataError, NotFoundError
+from db.facade_features import FACADE_FIGURE_COLUMNS, write_feature_texts
 from db.geomcodec import encode_point_z, encode_polygon_z
 from db.jobs import create_job
 from db.ops import copy_rows, reserve_ids
@@ -54,16 +56,6 @@ TEX_IMAGE_COLUMNS = (
     "radiometry_offset",
     "radiometry_unit",
     "sha256",
-)
-#: the thermal analysis' figures of a surface (`surface_thermal`, migration 0010)
-FACADE_FIGURE_COLUMNS = (
-    "typical_k",
-    "spread_k",
-    "hot_share",
-    "window_share",
-    "heat_loss_index",
-    "windows",
-    "leaks",
 )
 THERMAL_COLUMNS = (
     "appearance_id",
@@ -305,6 +297,7 @@ def _write(
             )
         )
     copy_rows(conn, "surface_thermal", THERMAL_COLUMNS, th_rows)
+    write_feature_texts(conn, "st.appearance_id = :a", {"a": aid})  # the facades' GeoJSON texts
     pose_rows = []
     for fp in result.poses:
         prior = (priors or {}).get(fp.frame)

@@ -4,9 +4,12 @@ database: the service layer of `routes_features` (`docs/features.md`).
 In: an engine, the collection id, the raw query parameters, the API's base URL. Out: JSON-ready
 dicts (collections) and the bytes of GeoJSON documents (items), with their `Content-Crs`.
 
-- Features are built as JSON text by PostgreSQL (`row_to_json`, `ST_AsGeoJSON`), so that a
-  page costs one query and no JSON parsing in Python; pages of more than `STREAM_ABOVE` features
-  are streamed from a server-side cursor.
+- Features are built as JSON text by PostgreSQL (`row_to_json`, `ST_AsGeoJSON`, `db.feature_json`),
+  so that a page costs one query and no JSON parsing in Python; pages of more than
+  `STREAM_ABOVE` features are streamed from a server-side cursor. A collection that keeps its
+  features' texts in CRS84 with its rows (`facades`: `db.facade_features`) has its CRS84 pages
+  read them (an index scan over stored text); the features whose text is missing, or was
+  written by another definition, are written by PostgreSQL in a second query.
 - Paging is keyset paging on the feature id (`WHERE id > last ORDER BY id LIMIT n + 1`), never
   OFFSET: a page deep in a collection costs what the first one does. The `next` / `prev` links
   carry an opaque cursor (`features_params.Cursor`).
@@ -20,6 +23,7 @@ dicts (collections) and the bytes of GeoJSON documents (items), with their `Cont
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Iterator, Mapping
 from typing import Any
@@ -128,10 +132,12 @@ def _link(href: str, rel: str, title: str) -> dict[str, str]:
     return {"href": href, "rel": rel, "type": GEOJSON, "title": title}
 
 
-def _page_url(base: str, path: str, raw: Mapping[str, list[str]], limit: int, cursor: Cursor) -> str:
+def _page_url_prefix(base: str, path: str, raw: Mapping[str, list[str]], limit: int) -> str:
+    """The URL of another page of the same query up to its cursor's value (which, base64url
+    without padding, needs no quoting): the request's parameters, `limit`, `&cursor=`."""
     params = [(k, v[0]) for k, v in raw.items() if k not in ("cursor", "limit")]
-    params += [("limit", str(limit)), ("cursor", encode_cursor(cursor))]
-    return f"{base}{path}?{urlencode(params)}"
+    params.append(("limit", str(limit)))
+    return f"{base}{path}?{urlencode(params)}&cursor="
 
 
 def _legacy_crs(crs: Crs) -> str:
@@ -155,8 +161,9 @@ def items_document(
     """`GET /collections/{id}/items`: (the FeatureCollection as chunks of bytes, the output CRS,
     whether to stream it). Raises `NotFoundError` (collection) and `FeatureParamError` (400).
 
-    A page of at most `STREAM_ABOVE` features is fetched at once (its features' JSON texts joined,
-    never parsed: one chunk); a larger forward page is streamed from a server-side cursor."""
+    A page of at most `STREAM_ABOVE` features is fetched at once (its features' JSON texts joined
+    as the bytes PostgreSQL sent, never decoded nor parsed: one chunk); a larger forward page is
+    streamed from a server-side cursor."""
     c = _collection(collection_id)
     srid = features_sql.database_srid_cached(engine)
     q = parse_items_query(params, c, srid)
@@ -173,27 +180,88 @@ def items_document(
         if cur is not None:
             where = f"{where} AND {c.key} {'>' if forward else '<'} :cursor_key"
             binds["cursor_key"] = cur.key
-        sql = features_sql.page_sql(c, props, q.crs, from_sql, where, forward, q.limit)
+        stored = features_sql.stored_text_ready(db, c)
+        sql = features_sql.page_sql(c, props, q.crs, from_sql, where, forward, q.limit, stored)
+        page = _Page(db, c, q, props, srid, matched, base, path, params, self_url)
         if stream:
-            return (
-                _chunks(db, db.stream(sql, binds), c, q, matched, base, path, params, self_url),
-                q.crs,
-                True,
-            )
-        rows = db.rows(sql, binds)  # in key order: ascending, or descending before the cursor
+            return page.chunks(db.stream(sql, binds, raw_text=True)), q.crs, True
+        rows = db.rows(sql, binds, raw_text=True)  # in key order: ascending, or descending before the cursor
+        more = len(rows) > q.limit  # one row more than a page: more after (forward) or before it
+        rows = rows[: q.limit] if forward else rows[q.limit - 1 :: -1] if more else rows[::-1]
+        texts = page.texts(rows)
     except BaseException:
         db.close()
         raise
     db.close()
-    more = len(rows) > q.limit  # one row more than a page: more after (forward) or before it
-    rows = rows[: q.limit] if forward else rows[q.limit - 1 :: -1] if more else rows[::-1]
-    tail = _tail(
-        c, q, matched, base, path, params, self_url, len(rows),
-        rows[0][0] if rows else None, rows[-1][0] if rows else None,
+    tail = page.tail(
+        len(texts), rows[0][0] if rows else None, rows[-1][0] if rows else None,
         more_after=more if forward else True,
         more_before=cur is not None if forward else more,
     )  # fmt: skip
-    return iter([b"".join((_HEAD, ",".join([r[1] for r in rows]).encode(), tail))]), q.crs, False
+    return iter([b"".join((_HEAD, b",".join(texts), tail))]), q.crs, False
+
+
+class _Page:
+    """One items request's page after its query: the features' texts (those a stored-text page
+    lacks written by PostgreSQL) and the FeatureCollection's tail."""
+
+    def __init__(
+        self,
+        db: Db,
+        c: Collection,
+        q: ItemsQuery,
+        props: tuple[tuple[str, str], ...],
+        srid: int,
+        matched: int | None,
+        base: str,
+        path: str,
+        params: Mapping[str, list[str]],
+        self_url: str,
+    ) -> None:
+        self.db, self.c, self.q, self.props, self.srid = db, c, q, props, srid
+        self.matched, self.base, self.path, self.params, self.self_url = matched, base, path, params, self_url
+
+    def texts(self, rows: list[tuple]) -> list[bytes]:
+        """The feature texts (UTF-8) of `rows` (key, text or None: a stored text of another
+        definition, or none), in their order; the missing ones written by PostgreSQL in one query
+        (a feature gone since the page's query is left out)."""
+        missing = [r[0] for r in rows if r[1] is None]
+        if not missing:
+            return [r[1] for r in rows]
+        sql = features_sql.features_by_key_sql(self.c, self.props, self.q.crs)
+        written = dict(self.db.rows(sql, {"keys": missing, "srid": self.srid}, raw_text=True))
+        return [f if f is not None else written[k] for k, f in rows if f is not None or k in written]
+
+    def tail(self, n: int, first: Any, last: Any, *, more_after: bool, more_before: bool) -> bytes:
+        """The FeatureCollection's end (`_tail`) for `n` features from key `first` to `last`."""
+        return _tail(
+            self.c, self.q, self.matched, self.base, self.path, self.params, self.self_url, n, first, last,
+            more_after=more_after, more_before=more_before,
+        )  # fmt: skip
+
+    def chunks(self, result: Iterator[tuple]) -> Iterator[bytes]:
+        """A streamed forward page: the FeatureCollection of `result`'s rows (key, feature text or
+        None; the first `q.limit`) in chunks of 500 features, then its tail; closes the
+        connection at the end."""
+        try:
+            yield _HEAD
+            rows = iter(result)
+            n, read, first, last = 0, 0, None, None
+            while read < self.q.limit:
+                batch = list(itertools.islice(rows, min(500, self.q.limit - read)))
+                if not batch:
+                    break
+                read += len(batch)
+                first = batch[0][0] if first is None else first
+                last = batch[-1][0]
+                texts = self.texts(batch)
+                if texts:
+                    yield (b"," if n else b"") + b",".join(texts)
+                n += len(texts)
+            more_after = read == self.q.limit and next(rows, None) is not None
+            yield self.tail(n, first, last, more_after=more_after, more_before=self.q.cursor is not None)
+        finally:
+            self.db.close()
 
 
 def _tail(
@@ -216,57 +284,19 @@ def _tail(
     `first` when `more_before`; keys as read, int or text), the legacy `crs` member, `}`."""
     links = [_link(self_url, "self", "this page")]
     key = str if c.key_kind == "uuid" else int
+    url = _page_url_prefix(base, path, params, q.limit)
     if more_after and last is not None:
         nxt = Cursor(key(last), True, matched, q.fingerprint)
-        links.append(_link(_page_url(base, path, params, q.limit, nxt), "next", "next page"))
+        links.append(_link(url + encode_cursor(nxt), "next", "next page"))
     if more_before and first is not None:
         prv = Cursor(key(first), False, matched, q.fingerprint)
-        links.append(_link(_page_url(base, path, params, q.limit, prv), "prev", "previous page"))
+        links.append(_link(url + encode_cursor(prv), "prev", "previous page"))
     links.append({"href": f"{base}/collections/{c.id}", "rel": "collection", "type": "application/json"})
     tail: dict[str, Any] = {"numberReturned": n}
     if matched is not None:
         tail["numberMatched"] = matched
     tail["links"] = links
     return ("]," + json.dumps(tail, separators=(",", ":"))[1:-1] + _legacy_crs(q.crs) + "}").encode()
-
-
-def _chunks(
-    db: Db,
-    result: Iterator[tuple],
-    c: Collection,
-    q: ItemsQuery,
-    matched: int | None,
-    base: str,
-    path: str,
-    params: Mapping[str, list[str]],
-    self_url: str,
-) -> Iterator[bytes]:
-    """A streamed forward page: the FeatureCollection of `result`'s rows (key, feature JSON
-    text; the first `q.limit`), then its tail; closes `db` at the end."""
-    try:
-        yield _HEAD
-        n, first, last, more_after = 0, None, None, False
-        buf: list[str] = []
-        for k, f in result:
-            if n == q.limit:
-                more_after = True
-                break
-            if first is None:
-                first = k
-            last = k
-            buf.append(f)
-            n += 1
-            if len(buf) >= 500:
-                yield ((",", "")[n == len(buf)] + ",".join(buf)).encode()
-                buf = []
-        if buf:
-            yield ((",", "")[n == len(buf)] + ",".join(buf)).encode()
-        yield _tail(
-            c, q, matched, base, path, params, self_url, n, first, last,
-            more_after=more_after, more_before=q.cursor is not None,
-        )  # fmt: skip
-    finally:
-        db.close()
 
 
 def item_document(

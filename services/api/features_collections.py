@@ -12,6 +12,9 @@ unique, indexed, ordered), a geometry expression in the database SRID, its prope
 - `facades`: one feature per surface and job appearance (`surface_thermal`: every surface a job
   analysed, `textured` when it got a texture, as in the `facade_thermal` view), POLYGON Z; the
   facade figures of the anomaly detector (`typical_k`, `hot_share`, ...) when the schema has them.
+  Its SQL is `db.facade_features`', which also keeps each feature's text in CRS84 with its row
+  (`stored_text`); a page without filters on the appearance or buildings joins only the surface
+  and the model (`lean`).
 - `anomalies`: `thermal_anomaly` rows, the outline POLYGON Z; the detector's `anomaly_id`,
   `frames`, `best_resolution_m`, `confidence` when the schema has them (migration 0010).
 - `jobs`: one feature per job; its footprint is the 2D bounding box of the footprints of the
@@ -20,11 +23,12 @@ unique, indexed, ordered), a geometry expression in the database SRID, its prope
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
-from db.store import FACADE_FIGURE_COLUMNS
+from db import facade_features
 
-__all__ = ["COLLECTIONS", "Collection", "Filter"]
+__all__ = ["COLLECTIONS", "Collection", "Filter", "LeanFrom", "StoredText"]
 
 
 @dataclass(frozen=True)
@@ -38,6 +42,49 @@ class Filter:
     kind: str = "text"
     slot: str = "where"
     description: str = ""
+
+
+@dataclass(frozen=True)
+class StoredText:
+    """Where a collection keeps each feature's GeoJSON text in CRS84 (as `feature_select`
+    writes it with the properties of the schema) and the fingerprint of the definition that
+    wrote it (`db.feature_json.feature_spec`): columns `text` and `spec` of `table`, which the
+    collection's query names `alias`."""
+
+    table: str
+    alias: str
+    text: str = "feature"
+    spec: str = "feature_spec"
+
+
+@dataclass(frozen=True)
+class LeanFrom:
+    """The FROM clause of a query that selects a collection's rows without writing their
+    features (a count; a page of stored feature texts): `base`, what every such query needs, and
+    the joins it may leave out, (alias, JOIN clause) in order, each finding exactly one row
+    (not-null foreign keys), so that leaving out one no condition names keeps the same rows."""
+
+    base: str
+    joins: tuple[tuple[str, str], ...]
+
+    def for_condition(self, condition: str) -> str:
+        """`base` with the joins `condition` names (by alias, `a.`) and those they need."""
+        needed = {a for a, _ in self.joins if _names(condition, a)}
+        kept: list[str] = []
+        for alias, clause in reversed(self.joins):
+            if alias in needed:
+                kept.append(clause)
+                needed |= {a for a, _ in self.joins if _names(clause, a)}
+        return "\n".join([self.base, *reversed(kept)])
+
+
+def _names(sql: str, alias: str) -> bool:
+    """Whether `sql` names a column of `alias` (`alias.` not preceded by a name character or dot).
+
+    >>> _names("rb.gml_id = :b", "b"), _names("b.gml_id = :b", "b")
+    (False, True)
+    """
+    return re.search(rf"(?<![\w.]){re.escape(alias)}\.", sql) is not None
 
 
 @dataclass(frozen=True)
@@ -68,6 +115,10 @@ class Collection:
     where: str = "TRUE"
     #: filters whose feature must have the thing they select (a LEFT JOIN that found a row)
     required: dict[str, str] = field(default_factory=dict)
+    #: the FROM clause of queries that need the rows but not `properties` (None: `from_sql`)
+    lean: LeanFrom | None = None
+    #: the feature's GeoJSON text in CRS84 kept with its row, where the schema has its columns
+    stored_text: StoredText | None = None
 
     def filter(self, name: str) -> Filter | None:
         """The filter of query parameter `name`, or None."""
@@ -157,6 +208,8 @@ LEFT JOIN LATERAL (
     required={"theme": "ta.id IS NOT NULL", "job": "ta.id IS NOT NULL"},
 )
 
+_FACADE_JOINS = dict(facade_features.JOINS)
+
 FACADES = Collection(
     id="facades",
     title="Facades and roofs with thermal figures",
@@ -164,49 +217,16 @@ FACADES = Collection(
     "(POLYGON Z) with its thermal statistics in kelvin, observed share and resolution; `textured` "
     "when the surface got a texture (the rows of the `facade_thermal` view). Walls only: "
     "`class=WallSurface`.",
-    from_sql=f"""surface_thermal st
-JOIN appearance a ON a.id = st.appearance_id
-JOIN surface s ON s.id = st.surface_id
-JOIN building b ON b.id = s.building_id
-JOIN building rb ON rb.id = COALESCE(b.root_id, b.id)
-JOIN city_model cm ON cm.id = s.city_model_id AND {_COMPLETE}""",
-    key="st.id",
-    geometry="s.geometry",
+    from_sql="\n".join(
+        [facade_features.TABLE]
+        + [f"{j} AND {_COMPLETE}" if a == "cm" else j for a, j in facade_features.JOINS]
+    ),
+    key=facade_features.KEY,
+    geometry=facade_features.GEOMETRY,
     geometry_type="PolygonZ",
     bbox_sql="INTERSECTS(s.geometry)",
-    properties=(
-        ("building", "rb.gml_id"),
-        ("owner", "b.gml_id"),
-        ("surface_gml_id", "s.gml_id"),
-        ("class", "s.surface_class"),
-        ("lod", "s.lod"),
-        ("model", "cm.name"),
-        ("model_id", "cm.id"),
-        ("theme", "a.theme"),
-        ("job", "a.job_id::text"),
-        (
-            "textured",
-            # a scalar subquery with LIMIT: an index lookup per feature of the page (an EXISTS may be
-            # planned as a hashed scan of all of texture_param)
-            "(SELECT TRUE FROM texture_param tp JOIN surface_data sd ON sd.id = tp.surface_data_id "
-            "WHERE tp.surface_id = s.id AND sd.appearance_id = a.id LIMIT 1) IS NOT NULL",
-        ),
-        ("observed_share", "st.observed_share"),
-        ("texels_observed", "st.texels_observed"),
-        ("texels_total", "st.texels_total"),
-        ("resolution_m", "st.resolution_m"),
-        ("best_resolution_m", "st.best_resolution_m"),
-        ("view_angle_deg", "st.view_angle_deg"),
-        ("mean_k", "st.mean_k"),
-        ("median_k", "st.median_k"),
-        ("std_k", "st.std_k"),
-        ("min_k", "st.min_k"),
-        ("max_k", "st.max_k"),
-        ("p05_k", "st.p05_k"),
-        ("p95_k", "st.p95_k"),
-        ("area_m2", "s.area_m2"),
-    ),
-    optional=tuple((name, f"st.{name}", "surface_thermal", name) for name in FACADE_FIGURE_COLUMNS),
+    properties=facade_features.PROPERTIES,
+    optional=facade_features.OPTIONAL,
     filters=(
         Filter("theme", "a.theme = :theme", description="Appearance theme."),
         Filter("job", "a.job_id = :job", kind="uuid", description="Job id."),
@@ -215,6 +235,13 @@ JOIN city_model cm ON cm.id = s.city_model_id AND {_COMPLETE}""",
         Filter("min_mean_k", "st.mean_k >= :min_mean_k", kind="float", description="Mean kelvin at least."),
         _MODEL,
     ),
+    lean=LeanFrom(
+        base="\n".join(
+            [facade_features.TABLE, _FACADE_JOINS["s"], f"{_FACADE_JOINS['cm']} AND {_COMPLETE}"]
+        ),
+        joins=tuple((a, _FACADE_JOINS[a]) for a in ("a", "b", "rb")),
+    ),
+    stored_text=StoredText("surface_thermal", "st"),
 )
 
 ANOMALIES = Collection(

@@ -24,6 +24,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import psycopg
+from psycopg.adapt import Loader
 from sqlalchemy import Engine, text
 from sqlalchemy.dialects.postgresql.psycopg import PGDialect_psycopg
 
@@ -53,6 +54,15 @@ def psycopg_sql(sql: str) -> str:
     return str(text(sql).compile(dialect=_DIALECT))
 
 
+class _RawText(Loader):
+    """Loads `text` values as the bytes PostgreSQL sent (UTF-8, the connection's encoding),
+    undecoded: feature texts go to the response as they came."""
+
+    def load(self, data: Any) -> bytes:
+        """The value's bytes."""
+        return bytes(data)
+
+
 class Db:
     """One request's queries on one connection checked out of `engine`'s pool (pre-pinged).
     `autocommit` True: each statement on its own; False: in a transaction, rolled back on
@@ -71,9 +81,14 @@ class Db:
                 self._fairy.close()
                 raise
 
-    def rows(self, sql: str, binds: dict[str, Any] | None = None) -> list[tuple[Any, ...]]:
-        """All rows of `sql` (`:name` binds from `binds`)."""
+    def rows(
+        self, sql: str, binds: dict[str, Any] | None = None, *, raw_text: bool = False
+    ) -> list[tuple[Any, ...]]:
+        """All rows of `sql` (`:name` binds from `binds`); `raw_text`: `text` values as `bytes`
+        (UTF-8), not decoded."""
         with self._pg.cursor() as cur:
+            if raw_text:
+                cur.adapters.register_loader("text", _RawText)
             return self._run(cur, sql, binds).fetchall()
 
     def first(self, sql: str, binds: dict[str, Any] | None = None) -> tuple[Any, ...] | None:
@@ -81,11 +96,15 @@ class Db:
         with self._pg.cursor() as cur:
             return self._run(cur, sql, binds).fetchone()
 
-    def stream(self, sql: str, binds: dict[str, Any] | None = None, *, batch: int = 500) -> Iterator[tuple]:
+    def stream(
+        self, sql: str, binds: dict[str, Any] | None = None, *, batch: int = 500, raw_text: bool = False
+    ) -> Iterator[tuple]:
         """The rows of `sql` from a server-side cursor, fetched `batch` at a time (needs
-        `autocommit=False`)."""
+        `autocommit=False`); `raw_text` as in `rows`."""
         assert not self._autocommit, "a server-side cursor needs a transaction"
         with self._pg.cursor(name="features_stream") as cur:
+            if raw_text:
+                cur.adapters.register_loader("text", _RawText)
             cur.itersize = batch
             self._run(cur, sql, binds)
             yield from cur

@@ -1,6 +1,7 @@
 """SQL of the OGC API - Features service (`features.py`): the SELECT of a page (features built as
-JSON text by PostgreSQL), the filter and bbox conditions, numberMatched, the data's extent, and a
-small per-process cache (database SRID, optional columns, extents, counts).
+JSON text by PostgreSQL, or read where the collection keeps them with its rows), the filter and
+bbox conditions, numberMatched, the data's extent, and a small per-process cache (database SRID,
+optional columns, extents, counts).
 
 In: a `Collection`, a validated `ItemsQuery`, a `features_db.Db` (one request's connection).
 Out: SQL text and bind parameters.
@@ -16,6 +17,7 @@ from typing import Any
 
 from sqlalchemy import Engine
 
+from db.feature_json import feature_expression, feature_lateral, feature_spec
 from db.srid import database_srid
 from services.api.features_collections import COLLECTIONS, Collection
 from services.api.features_db import Db, engine_key
@@ -29,8 +31,12 @@ __all__ = [
     "database_srid_cached",
     "feature_lateral",
     "feature_select",
+    "features_by_key_sql",
     "page_sql",
     "properties",
+    "rows_from",
+    "stored_spec",
+    "stored_text_ready",
     "where_clause",
 ]
 
@@ -79,16 +85,30 @@ def properties(db: Db, c: Collection) -> tuple[tuple[str, str], ...]:
     """The collection's properties, with its optional ones whose column exists."""
     if not c.optional:
         return c.properties
+    have = _columns(db, c)
+    return c.properties + tuple((n, e) for n, e, t, col in c.optional if (t, col) in have)
+
+
+def stored_text_ready(db: Db, c: Collection) -> bool:
+    """Whether the schema has the columns of the collection's stored feature texts."""
+    st = c.stored_text
+    return st is not None and {(st.table, st.text), (st.table, st.spec)} <= _columns(db, c)
+
+
+def _columns(db: Db, c: Collection) -> frozenset[tuple[str, str]]:
+    """(table, column) of the tables of the collection's optional properties and stored texts
+    that the schema has (kept `_TTL_S` seconds)."""
     key = ("columns", db.key, c.id)
     have = _cache.get(key, _TTL_S)
     if have is None:
+        tables = {o[2] for o in c.optional} | ({c.stored_text.table} if c.stored_text else set())
         rows = db.rows(
             "SELECT table_name, column_name FROM information_schema.columns "
             "WHERE table_schema = current_schema() AND table_name = ANY(:t)",
-            {"t": sorted({o[2] for o in c.optional})},
+            {"t": sorted(tables)},
         )
         have = _cache.put(key, frozenset((r[0], r[1]) for r in rows))
-    return c.properties + tuple((n, e) for n, e, t, col in c.optional if (t, col) in have)
+    return have
 
 
 def data_extent(db: Db, srid: int) -> dict[str, list[float]] | None:
@@ -117,39 +137,28 @@ def data_extent(db: Db, srid: int) -> dict[str, list[float]] | None:
 
 
 def feature_select(c: Collection, props: tuple[tuple[str, str], ...], crs: Crs) -> str:
-    """The SELECT list: the key (`k`) and the feature as JSON text (`f`). The properties are
-    the columns of the lateral subquery `feature_lateral` (to follow the FROM clause), written
-    by `row_to_json` (which looks up its column types once per query, where `json_build_object`
-    does for every argument of every row: about a quarter of a page's CPU in PostgreSQL); the
-    feature's frame is concatenated text."""
-    g = (  # options 0: no `crs` member in each geometry (RFC 7946; the document says its CRS)
-        f"ST_AsGeoJSON(ST_Transform({c.geometry}, 4979), 9, 0)"
-        if crs.geographic
-        else f"ST_AsGeoJSON({c.geometry}, 6, 0)"
-    )
-    key_json = f"{c.key}::text" if c.key_kind == "int" else f"to_json({c.key}::text)::text"
-    head, geometry, properties = (
-        _sql_text(t) for t in ('{"type":"Feature","id":', ',"geometry":', ',"properties":')
-    )
-    return (
-        f"{c.key} AS k, {head} || {key_json} || {geometry} || COALESCE({g}, 'null') || {properties} || "
-        f"row_to_json({_PROPS})::text || '}}' AS f"
-    )
+    """The SELECT list: the key (`k`) and the feature as JSON text (`f`, `db.feature_json`; the
+    properties are the columns of the lateral subquery `feature_lateral`, to follow the FROM
+    clause)."""
+    return f"{c.key} AS k, {feature_expression(c.key, c.key_kind, c.geometry, crs.geographic)} AS f"
 
 
-def _sql_text(s: str) -> str:
-    """`s` as an SQL string literal."""
-    return "'" + s.replace("'", "''") + "'"
+def stored_spec(c: Collection, props: tuple[tuple[str, str], ...]) -> int:
+    """The spec a feature text kept with a row of `c` has when it was written by the same
+    definition as `feature_select` in CRS84 with `props` (`db.feature_json.feature_spec`)."""
+    return _stored_spec(c.id, props)
 
 
-_PROPS = "_feature_props"
+@functools.lru_cache(maxsize=64)
+def _stored_spec(collection_id: str, props: tuple[tuple[str, str], ...]) -> int:
+    c = COLLECTIONS[collection_id]
+    return feature_spec(feature_expression(c.key, c.key_kind, c.geometry, True), props)
 
 
-def feature_lateral(props: tuple[tuple[str, str], ...]) -> str:
-    """The lateral subquery of the feature's properties (column name = property name), to
-    append to the FROM clause of a `feature_select` query."""
-    cols = ", ".join(f'{expr} AS "{name}"' for name, expr in props)
-    return f", LATERAL (SELECT {cols}) AS {_PROPS}"
+def rows_from(c: Collection, from_sql: str, where: str) -> str:
+    """The FROM clause of a query of `c`'s rows meeting `where` that writes no feature (a count,
+    a page of stored texts): the lean one when `c` has one (`Collection.lean`), else `from_sql`."""
+    return c.lean.for_condition(where) if c.lean is not None else from_sql
 
 
 def page_sql(
@@ -160,14 +169,21 @@ def page_sql(
     where: str,
     forward: bool,
     limit: int,
+    stored: bool = False,
 ) -> str:
     """The SELECT of a page: (key, feature JSON text) of `limit + 1` features in key order
     (`forward`: ascending, else descending; the one more tells whether there are more). Made
     once per distinct page query (cached).
 
+    `stored` (the collection keeps its features' texts, the schema has them, `crs` is CRS84 or
+    CRS84h: the texts are CRS84, written by the same SQL): the page reads the texts over the lean
+    FROM clause (`rows_from`); the text of a row whose spec is not the one of `props` (written by
+    another definition, or none) comes back NULL, and `features_by_key_sql` writes those.
+
     (Aggregating the page into one row in PostgreSQL, `string_agg` over a window, was tried: it
     costs PostgreSQL more CPU than the rows cost psycopg to fetch, `docs/features.md`.)"""
-    return _page_sql(c.id, props, crs, from_sql, where, forward, limit)
+    st = c.stored_text if stored and crs.geographic else None
+    return _page_sql(c.id, props, crs, from_sql, where, forward, limit, st is not None)
 
 
 @functools.lru_cache(maxsize=1024)
@@ -179,11 +195,33 @@ def _page_sql(
     where: str,
     forward: bool,
     limit: int,
+    stored: bool,
 ) -> str:
     c = COLLECTIONS[collection_id]
+    order = f"ORDER BY {c.key} {'ASC' if forward else 'DESC'} LIMIT {limit + 1}"
+    if stored:
+        assert c.stored_text is not None
+        t, s = c.stored_text, stored_spec(c, props)
+        feature = f"CASE WHEN {t.alias}.{t.spec} = {s} THEN {t.alias}.{t.text} END"
+        select, from_sql = f"{c.key} AS k, {feature} AS f", rows_from(c, from_sql, where)
+    else:
+        select, from_sql = feature_select(c, props, crs), from_sql + feature_lateral(props)
+    return f"SELECT {select} FROM {from_sql} WHERE {where} {order}"
+
+
+def features_by_key_sql(c: Collection, props: tuple[tuple[str, str], ...], crs: Crs) -> str:
+    """The SELECT of (key, feature JSON text) of the features whose keys are in `:keys` (an
+    array), in `crs`, written by PostgreSQL (binds: `keys`, `srid`)."""
+    return _features_by_key_sql(c.id, props, crs)
+
+
+@functools.lru_cache(maxsize=64)
+def _features_by_key_sql(collection_id: str, props: tuple[tuple[str, str], ...], crs: Crs) -> str:
+    c = COLLECTIONS[collection_id]
+    from_sql = c.from_sql.format(**{s: "" for s in c.slots})
     return (
         f"SELECT {feature_select(c, props, crs)} FROM {from_sql}{feature_lateral(props)} "
-        f"WHERE {where} ORDER BY {c.key} {'ASC' if forward else 'DESC'} LIMIT {limit + 1}"
+        f"WHERE ({c.where}) AND {c.key} = ANY(:keys)"
     )
 
 
@@ -242,7 +280,8 @@ def count_matched(
     hit = _cache.get(key, COUNT_TTL_S)
     if hit is not None:
         return hit if hit >= 0 else None
-    sql = f"SELECT count(*) FROM (SELECT 1 FROM {from_sql} WHERE {where} LIMIT {COUNT_CAP}) x"
+    rows = rows_from(c, from_sql, where)
+    sql = f"SELECT count(*) FROM (SELECT 1 FROM {rows} WHERE {where} LIMIT {COUNT_CAP}) x"
     row = db.first(sql, params)
     n = row[0] if row else 0
     _cache.put(key, -1 if n >= COUNT_CAP else int(n))

@@ -4,7 +4,9 @@ against the real PostGIS test database, read by clients no one here wrote: GDAL'
 
 Data: the Bavarian sample with one stored job result (`db.store`: textures, statistics, an
 anomaly), and the NRW tile (2,000+ surfaces) with the thermal rows of eight jobs replicated in SQL
-(> 10,000 facades, an anomaly per building)."""
+(> 10,000 facades, an anomaly per building), the facade feature texts of half of them written as
+`db.store` writes them, one job's texts stale (another definition's) and the others without: a
+page mixes texts read and features the service writes."""
 
 from __future__ import annotations
 
@@ -22,8 +24,12 @@ from sqlalchemy import text
 from sqlalchemy.orm import Session
 
 from db.citygml.reader import read_model
+from db.facade_features import stored_properties, write_feature_texts
 from db.importer import import_citygml
 from db.store import create_job, store_building_result
+from services.api import features_sql
+from services.api.features_collections import COLLECTIONS
+from services.api.features_params import parse_crs
 from tests.conftest import DATA
 from tests.integration.conftest import TEST_SRID, ApiServer, assert_problem, citytherm_exe, new_api_key
 from tests.integration.test_db_store_export import make_result
@@ -79,6 +85,16 @@ def data(db_engine) -> dict:
                 ),
                 {"j": job, "k": k},
             )
+            if k % 2 == 0:  # their feature texts, as `db.store` writes them; none for the odd jobs
+                of_job = "st.appearance_id IN (SELECT id FROM appearance WHERE job_id = :j)"
+                write_feature_texts(c, of_job, {"j": job})
+        c.execute(  # one job's texts as another definition of the features would have left them
+            text(
+                "UPDATE surface_thermal st SET feature = 'stale', feature_spec = 1 FROM appearance a "
+                "WHERE a.id = st.appearance_id AND a.job_id = :j"
+            ),
+            {"j": jobs[2]},
+        )
         c.execute(  # an anomaly on the first wall of every building, for the first job
             text(
                 "INSERT INTO thermal_anomaly (job_id, appearance_id, building_id, surface_id, kind, outline, "
@@ -212,6 +228,32 @@ def test_paging_returns_each_facade_once(server: ApiServer, db_engine, data) -> 
         big = c.get("/collections/facades/items", params={"limit": 50_000}).json()
         assert big["numberReturned"] == 10_000
         assert "limit=10000" in next(link["href"] for link in big["links"] if link["rel"] == "next")
+
+
+def test_stored_feature_texts_are_what_the_service_writes(server: ApiServer, db_engine, data) -> None:
+    """The facade texts kept with the rows (`db.store` wrote the Bavarian job's, the fixture half
+    the NRW jobs') are byte for byte the features the service writes in CRS84, with the spec of
+    its definition; a page serves them and writes the others (stale spec, none) the same way."""
+    fac, props = COLLECTIONS["facades"], stored_properties()
+    crs84 = parse_crs(None, TEST_SRID)
+    spec = features_sql.stored_spec(fac, props)
+    with db_engine.connect() as conn:
+        texts = text("SELECT id, feature FROM surface_thermal WHERE feature_spec = :s")
+        stored = dict(conn.execute(texts, {"s": spec}).all())
+        sql = text(features_sql.features_by_key_sql(fac, props, crs84))
+        written = dict(conn.execute(sql, {"keys": sorted(stored), "srid": TEST_SRID}).all())
+        others = conn.execute(
+            text("SELECT count(*) FROM surface_thermal WHERE feature_spec IS DISTINCT FROM :s"), {"s": spec}
+        ).scalar_one()
+    of_bav = "JOIN appearance a ON a.id = st.appearance_id WHERE a.job_id = :j"
+    bav = _ids(db_engine, f"SELECT st.id {FACADES_SQL} {of_bav}", j=data["bav_job"])
+    assert bav and set(bav) <= set(stored) and len(stored) > 1000 and others > 1000
+    assert stored == written
+    with server.client("read") as c:
+        page = c.get("/collections/facades/items", params={"limit": 2000}).json()["features"]
+    kinds = {k in stored for k in (f["id"] for f in page)}
+    assert kinds == {True, False}
+    assert all(f == json.loads(stored[f["id"]]) for f in page if f["id"] in stored)
 
 
 def test_paging_backwards_and_by_uuid(server: ApiServer, db_engine, data) -> None:
