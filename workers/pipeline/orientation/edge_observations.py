@@ -199,8 +199,9 @@ def normal_equations(
     unit = options.edge_sample_weight / options.sigma_edge_px**2
     w_e = found * vis.weight * tukey(off, min(c, R_e)) * unit
     H = (A * w_e[:, None]).T @ A + prior_info
-    delta_tot = pose_delta(prior, pose)
-    g = A.T @ (w_e * off) - prior_info @ delta_tot
+    g = A.T @ (w_e * off)
+    if prior_info.any():  # a zero prior (the block's edge equations) adds nothing
+        g = g - prior_info @ pose_delta(prior, pose)
     rc = np.zeros((0, 2))
     wc = np.zeros(0)
     idx = np.zeros(0, int)
