@@ -299,8 +299,9 @@ def calibrate(ingested: Ingested, options: RunOptions, caster: RayCaster | None 
 
 
 def orients(options: RunOptions, calibrated: Calibrated, platform: str) -> bool:
-    """True when the orient stage runs: refinement and `options.orient` on, a close-range platform
-    (`orientation.sequence.SEQUENCE_PLATFORMS`), the calibration accepted or not."""
+    """True when the orient stage runs: refinement and `options.orient` on, a platform of
+    `orientation.sequence.SEQUENCE_PLATFORMS` (close range, flights), the calibration accepted or
+    not."""
     return options.refine and options.orient and platform in SEQUENCE_PLATFORMS
 
 
