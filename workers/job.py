@@ -368,6 +368,9 @@ def plan(ingested: Ingested, calibrated: Calibrated, oriented: Oriented, options
     if options.buildings is not None:
         targets = [b.id for b in ingested.buildings if b.id in options.buildings]
     uopts = unit_options(options, calibrated)
+    if m.platform == "flight" and uopts.refine is not None:
+        # a flight frame orients alone where the sequence's pose is not confirmed by a building
+        uopts = replace(uopts, refine=replace(uopts.refine, sequence_fallback=True))
     units = plan_units(
         ingested.buildings,
         m.camera,
