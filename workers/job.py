@@ -299,8 +299,9 @@ def calibrate(ingested: Ingested, options: RunOptions, caster: RayCaster | None 
 
 
 def orients(options: RunOptions, calibrated: Calibrated, platform: str) -> bool:
-    """True when the orient stage runs: refinement and `options.orient` on, a close-range platform
-    (`orientation.sequence.SEQUENCE_PLATFORMS`), the calibration accepted or not."""
+    """True when the orient stage runs: refinement and `options.orient` on, a platform of
+    `orientation.sequence.SEQUENCE_PLATFORMS` (close range, flights), the calibration accepted or
+    not."""
     return options.refine and options.orient and platform in SEQUENCE_PLATFORMS
 
 
@@ -367,6 +368,9 @@ def plan(ingested: Ingested, calibrated: Calibrated, oriented: Oriented, options
     if options.buildings is not None:
         targets = [b.id for b in ingested.buildings if b.id in options.buildings]
     uopts = unit_options(options, calibrated)
+    if m.platform == "flight" and uopts.refine is not None:
+        # a flight frame orients alone where the sequence's pose is not confirmed by a building
+        uopts = replace(uopts, refine=replace(uopts.refine, sequence_fallback=True))
     units = plan_units(
         ingested.buildings,
         m.camera,

@@ -148,6 +148,26 @@ def test_synthetic_flight_with_default_errors_is_refined_below_a_pixel(synth_fli
             after = reprojection_rms(cam, b, rp.pose, res.truth.poses[i])
             assert before > 30.0
             assert rp.status == "refined" and after < 1.0, (b.id, i, before, after)
+    # from a sequence orientation whose poses of every other frame are 3 m off and uncertain: step
+    # 0b keeps their priors, and with `sequence_fallback` (flights) they are oriented on their own
+    from dataclasses import replace
+
+    from workers.pipeline.orientation.block import UnitSequence
+    from workers.pipeline.orientation.building import CoregisterOptions
+
+    b, T = cluster[0], res.truth.poses
+    shift = np.array([3.0, -3.0, 0.0])
+    poses = {i: T[i] if k % 2 == 0 else Pose(T[i].R_world_from_cam, T[i].center + shift)
+             for k, i in enumerate(frames)}
+    cov = {i: np.eye(6) * (1e-8 if k % 2 == 0 else 1.0) for k, i in enumerate(frames)}
+    seq = UnitSequence(poses, cov, {i: 0 for i in frames},
+                       {i: float("nan") for i in frames})
+    opts = replace(CoregisterOptions(), sequence_fallback=True)
+    out = refine_building(cam, b, caster, list(frames), MemoryFrames(frames), prior, res.manifest.accuracy,
+                          opts, times=times, sequence=seq)
+    for i, rp in out.items():
+        after = reprojection_rms(cam, b, rp.pose, res.truth.poses[i])
+        assert rp.status == "refined" and after < 1.0, (i, after)
 
 
 def test_synthetic_drive_is_never_refined_into_a_wrong_pose():

@@ -101,9 +101,9 @@ def test_the_orient_stage_orients_a_facade_after_a_rejected_calibration(facade) 
     assert np.mean(before > 5.0) >= 0.8
     assert np.mean(after < 1.0) >= 0.9 and np.median(after) < 0.5, np.round(after, 2)
     assert all(b["accepted"] for b in oriented.report["blocks"])
-    # without refinement or on a flight the stage does not run
+    # without refinement the stage does not run; flights are oriented by it too (issue 18)
     assert not job.orients(job.RunOptions.build(refine=False), calibrated, "terrestrial")
-    assert not job.orients(options, calibrated, "flight")
+    assert job.orients(options, calibrated, "flight")
 
 
 def test_smoothing_keeps_a_steady_motion_and_removes_white_noise() -> None:

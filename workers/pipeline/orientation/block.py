@@ -306,6 +306,7 @@ def refine_from_sequence(
             edge_options,
             fit_options,
             prior_options.null_shift_px,
+            visible=ed.vis,  # `frame_edges` saw the building from this very pose
         )
         if got is not None:
             support[i], null[i], off, matched[i] = got

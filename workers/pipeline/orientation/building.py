@@ -155,6 +155,13 @@ def refine_building(
         got, reason = refine_from_sequence(camera, wf, raycaster, frames, images, prior, sequence,
                                            options.block, options.fit, options.edges, options.features,
                                            options.prior)
+        rest = [i for i in frames if got[i].status == "prior"] if options.sequence_fallback else []
+        if not reason and rest:
+            # the building's own edges did not confirm the sequence's pose of these frames: they
+            # are oriented on their own from their priors (steps 0-4), taken where refined
+            again = refine_building(camera, building, raycaster, rest, frame_source, prior, accuracy, options,
+                                    times, None)
+            got.update({i: r for i, r in again.items() if r.status == "refined"})
         if not reason:
             return got
     infos = {i: prior_information(prior[i], accuracy, options) for i in frames}

@@ -90,6 +90,10 @@ class CoregisterOptions:
     # the block is rejected, the frames go on one by one. Off: neither
     block_orientation: bool = True
     block: BlockOptions = field(default_factory=BlockOptions)
+    # frames whose sequence pose the building's edges do not confirm (step 0b keeps their priors)
+    # are oriented on their own by the steps below (flights: `job.plan` sets it; a frame there
+    # sees enough buildings to orient alone, unlike a close-range drive frame)
+    sequence_fallback: bool = False
     # per-frame deviation of a frame's correction from its neighbours' and from the common
     # correction (white noise, vibration), and the null shift of the edge-support test: one
     # `PriorOptions` for the frames, the joint fit and the block orientation

@@ -16,6 +16,7 @@ the bundle adjustment (`bundle`) and the block's check of the sequence poses (`b
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -81,23 +82,33 @@ def edge_search(
     gm = np.hypot(gx, gy)
     cos_lim = np.cos(np.radians(options.edge_max_angle_deg))
     valid = inside & (gn >= options.edge_min_gradient_rel * feats.grad_ref) & (gn >= cos_lim * gm)
-    penalty = np.exp(-0.5 * (k[None, :] / (options.edge_distance_scale * max(R, 1))) ** 2)
-    score = np.where(valid, gn * penalty, -1.0)
     # only interior local maxima of the gradient along the search line (a rising gradient at the
     # end of the line is no edge within the radius)
-    left = np.concatenate([np.full((n, 1), np.inf), gn[:, :-1]], axis=1)
-    right = np.concatenate([gn[:, 1:], np.full((n, 1), np.inf)], axis=1)
-    score = np.where((gn >= left) & (gn >= right), score, -1.0)
+    valid[:, 1:] &= gn[:, 1:] >= gn[:, :-1]
+    valid[:, :-1] &= gn[:, :-1] >= gn[:, 1:]
+    valid[:, [0, -1]] = False
+    score = np.where(valid, gn * _penalty(R, options.edge_distance_scale)[None, :], -1.0)
+    rows = np.arange(n)
     j = np.argmax(score, axis=1)
-    found = score[np.arange(n), j] > 0
+    found = score[rows, j] > 0
     # parabolic sub-pixel refinement of the gradient peak
     jl = np.clip(j - 1, 0, 2 * R)
     jr = np.clip(j + 1, 0, 2 * R)
-    gl, gc, gr = gn[np.arange(n), jl], gn[np.arange(n), j], gn[np.arange(n), jr]
+    gl, gc, gr = gn[rows, jl], gn[rows, j], gn[rows, jr]
     den = gl - 2 * gc + gr
     interior = (np.abs(den) > 1e-12) & (jl != j) & (jr != j)
     sub = np.where(interior, 0.5 * (gl - gr) / np.where(den == 0, 1, den), 0)
     return k[j] + np.clip(sub, -0.5, 0.5), found
+
+
+@functools.lru_cache(maxsize=64)
+def _penalty(R: int, scale: float) -> np.ndarray:
+    """`(2R + 1,)` the search's mild preference for small offsets `k = -R .. R` (px):
+    `exp(-k² / 2 (scale · max(R, 1))²)`. Read-only."""
+    k = np.arange(-R, R + 1, dtype=np.float64)
+    p = np.exp(-0.5 * (k / (scale * max(R, 1))) ** 2)
+    p.flags.writeable = False
+    return p
 
 
 def image_normals(camera: Camera, pose: Pose, vis: VisibleWireframe, uv: np.ndarray) -> np.ndarray:
@@ -188,8 +199,9 @@ def normal_equations(
     unit = options.edge_sample_weight / options.sigma_edge_px**2
     w_e = found * vis.weight * tukey(off, min(c, R_e)) * unit
     H = (A * w_e[:, None]).T @ A + prior_info
-    delta_tot = pose_delta(prior, pose)
-    g = A.T @ (w_e * off) - prior_info @ delta_tot
+    g = A.T @ (w_e * off)
+    if prior_info.any():  # a zero prior (the block's edge equations) adds nothing
+        g = g - prior_info @ pose_delta(prior, pose)
     rc = np.zeros((0, 2))
     wc = np.zeros(0)
     idx = np.zeros(0, int)

@@ -89,9 +89,10 @@ __all__ = [
     "plan_windows",
 ]
 
-#: platforms whose sequences are oriented in blocks before the units (close range: a frame alone
-#: rarely fixes its pose), calibration accepted or not; flights orient frame by frame in the units
-SEQUENCE_PLATFORMS = ("drive", "terrestrial")
+#: platforms whose sequences are oriented in blocks before the units, calibration accepted or not:
+#: close range (a frame alone rarely fixes its pose), and flights (a frame sees dozens of buildings:
+#: oriented once against all of them, not once per building in every unit; issue 18)
+SEQUENCE_PLATFORMS = ("drive", "terrestrial", "flight")
 
 
 @dataclass(frozen=True, eq=False)

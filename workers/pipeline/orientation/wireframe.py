@@ -316,8 +316,10 @@ def visible_wireframe(
     """
     V, Ed = wireframe.vertices, wireframe.edges
     a, b = V[Ed[:, 0]], V[Ed[:, 1]]
-    uv_a, z_a = pose.project(camera, a)
-    uv_b, z_b = pose.project(camera, b)
+    # every vertex projected once (point by point: the same as projecting the edges' ends)
+    uv_v, z_v = pose.project(camera, V)
+    uv_a, z_a = uv_v[Ed[:, 0]], z_v[Ed[:, 0]]
+    uv_b, z_b = uv_v[Ed[:, 1]], z_v[Ed[:, 1]]
     len_px = np.linalg.norm(np.nan_to_num(uv_b - uv_a, nan=0.0), axis=1)
     n = np.clip(
         np.ceil(len_px / options.sample_spacing_px),
@@ -350,7 +352,9 @@ def visible_wireframe(
     sel = np.nonzero(ok)[0]
     d = (b - a)[edge_of[sel]]
     d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    vis_edges = np.unique(edge_of[sel])
+    # `edge_of` is sorted: its distinct values are where it changes
+    seen = edge_of[sel]
+    vis_edges = seen[np.concatenate([[True], seen[1:] != seen[:-1]])] if len(seen) else seen
     cor, cp = _visible_corners(wireframe, camera, pose, raycaster, vis_edges, options)
     return VisibleWireframe(
         points=pts[sel],
@@ -371,8 +375,9 @@ def _visible_corners(wireframe: Wireframe, camera: Camera, pose: Pose, raycaster
     V, Ed, C = wireframe.vertices, wireframe.edges, pose.center
     cor = wireframe.corners
     if len(cor) and len(vis_edges):
-        has_edge = np.isin(cor, Ed[vis_edges].ravel())
-        cor = cor[has_edge]
+        on_seen = np.zeros(len(V), bool)
+        on_seen[Ed[vis_edges].ravel()] = True
+        cor = cor[on_seen[cor]]
     else:
         cor = cor[:0]
     if len(cor):
