@@ -63,8 +63,9 @@ class ReconstructionOrientation:
         ties, tie_rms_px: per registered frame its observations and their reprojection RMS (px).
         runs: per run of frames its figures (`to_dict`).
         determined: registered frames whose part's facade coregistration fixed both horizontal
-            shift directions (facades of two orientations: `facades_fix_horizontal`); the
-            others keep the GNSS/INS placement's shift along what the planes leave open.
+            shift directions (facades of two orientations: `facades_fix_horizontal`) and whose
+            edge placement (`edge_placement`, the height) was kept; the others keep the GNSS/INS
+            placement's shift along what planes and edges leave open.
     """
 
     poses: dict[int, Pose]
@@ -154,8 +155,8 @@ def orient_reconstruction(
             camera, raycaster, wf, run, frame_source, prior, times, sig_m, sig_deg, options
         )
         figures.append(fig)
-        for (placed, cov_run, tracks, spans), adj in placed_parts:
-            if spans:
+        for (placed, cov_run, tracks, fixed), adj in placed_parts:
+            if fixed:
                 determined.update(placed)
             for f, p in placed.items():
                 poses[f], cov[f] = p, cov_run[f]
@@ -295,7 +296,7 @@ def _place(
         "edge_placement": None if ep is None else ep.to_dict(),
         "normal_spread": round(spread, 4),
         "facades_fix_horizontal": spans,
-        "_result": (out_poses, cov, _tracks(adj, Xm), spans),
+        "_result": (out_poses, cov, _tracks(adj, Xm), spans and ep is not None and ep.kept),
     }
 
 
