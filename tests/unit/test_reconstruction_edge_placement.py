@@ -1,5 +1,5 @@
 """The coregistered block's similarity corrected by the model edges (`reconstruction.edge_placement`):
-a drive along one homogeneous wall, the block placed 0.25 m too low, 0.2 m along the wall, turned
+a drive along one homogeneous wall, the block placed 0.5 m too low (32 px), 0.2 m along the wall, turned
 0.3° about the wall's normal and scaled by 1 %: the eave, the ground line and the corner bring it
 back where the facade plane cannot."""
 
@@ -20,7 +20,7 @@ def test_edges_fix_what_one_facade_leaves_open() -> None:
     images = {k: scene.render(p, k) for k, p in enumerate(truth)}
     pivot = np.mean([p.center for p in truth], axis=0)
     # what the south wall (normal −y) leaves open: shift along x and z, turn about y, scale
-    off = similarity_about(np.r_[np.radians([0.0, 0.3, 0.0]), [0.2, 0.0, -0.25], np.log(1.01)], pivot)
+    off = similarity_about(np.r_[np.radians([0.0, 0.3, 0.0]), [0.2, 0.0, -0.5], np.log(1.01)], pivot)
     placed = off.poses(dict(enumerate(truth)))
     sig = np.r_[np.radians([0.01, 1.0, 0.01]), [1.0, 0.01, 1.0], 0.05]  # the planes fixed y and two tilts
     wf = mesh_wireframe(scene.mesh)

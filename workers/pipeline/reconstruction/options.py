@@ -84,6 +84,13 @@ class ReconstructionOptions:
         edge_iterations, edge_radius_start_px, edge_radius_decay: Gauss-Newton iterations, the
             edge search radius at the start (px) and its shrink per iteration (to the frame
             fit's minimum, `FrameFitOptions.edge_radius_min_px`).
+        edge_coarse_min_sigma_m, edge_coarse_max_m, edge_coarse_step_m, edge_coarse_downsample,
+        edge_coarse_blur, edge_coarse_min_gain: the grid search of the block's shift before
+            the Gauss-Newton fit (`edge_placement.coarse_shift`): along the shift directions
+            whose a-priori σ exceeds the first, ±3σ up to the second, in steps of the third
+            (metres), on gradients downsampled and blurred by the next two (pixels), kept when
+            it raises the oriented-gradient score by `edge_coarse_min_gain` per frame; at most
+            `edge_coarse_max_candidates` shifts (coarser steps where three directions are open).
         edge_min_gain: the correction is kept when the frames' edge support (share of samples
             within `FrameFitOptions.support_px` of an image edge) rises by at least this.
     """
@@ -129,6 +136,13 @@ class ReconstructionOptions:
     edge_radius_start_px: float = 16.0
     edge_radius_decay: float = 0.75
     edge_min_gain: float = 0.0
+    edge_coarse_min_sigma_m: float = 0.05
+    edge_coarse_max_m: float = 1.0
+    edge_coarse_step_m: float = 0.04
+    edge_coarse_downsample: int = 2
+    edge_coarse_blur: float = 1.0
+    edge_coarse_min_gain: float = 0.02
+    edge_coarse_max_candidates: int = 3000
 
     def __post_init__(self) -> None:
         if self.min_track_length < 2 or self.ba_rounds < 1 or self.plane_rounds < 1:
