@@ -16,7 +16,10 @@ assigned to the model's facade planes and the similarity corrected by their dist
 (`planes.fit_planes`) → every registered frame's pose through the final similarity → the block
 adjusted once more with the facade points held to their planes and the priors as a common
 error plus per-frame noise (`plane_adjust.adjust_on_planes`: what bent the block, one similarity
-cannot remove; where the facades fix both horizontal directions, `options.plane_adjustment`).
+cannot remove; where the facades fix both horizontal directions, `options.plane_adjustment`) →
+the part's similarity corrected by the model edges its frames see (`edge_placement.fit_on_edges`:
+the height walls leave to the GNSS/INS, and on a single facade its in-plane shift, turn and
+scale where the frames show edges; `options.edge_placement`).
 
 Why the LK tracks and not pycolmap's SIFT: on the one-facade sequence (`bench/orientation_sfm.py`,
 `features_on_tir`, 40 frames) the LK tracks give 1013 observations of which 875 lie within 1 px
