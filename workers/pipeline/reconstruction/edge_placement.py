@@ -19,7 +19,8 @@ projected edge's normal for the strongest image edge, Tukey weights) give the no
 with the prior information of `q` (the plane fit's) give the step; the search radius shrinks
 from `edge_radius_start_px` to `edge_radius_min_px`. Kept when the edge support (share of
 samples within `support_px` of an image edge, over the frames) rises by `edge_min_gain` or
-more, or does not fall while the correction moves the block.
+more. Before it, a grid search of the block's shift along the directions the prior leaves open
+(`coarse_shift`) brings the edges within the search radius.
 
 In: camera, caster, scene wireframe (model CRS), poses of the part (model CRS), their images,
 the pivot `(3,)`, the `(7, 7)` prior information of `q` (rad⁻², m⁻², 1), `ReconstructionOptions`.

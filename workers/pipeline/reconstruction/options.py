@@ -56,7 +56,7 @@ class ReconstructionOptions:
         max_disagreement_px: `--orientation both`: a frame the edge path oriented takes the
             reconstruction's pose where the two disagree by more than this (px, median over
             the frames of its edge block; `combine`) and the reconstruction's facades fixed
-            both horizontal shift directions there and its edge placement the height. With the
+            both horizontal shift directions there and the edges confirm its height. With the
             edge placement the reconstruction's own error fell (bench seed 1, 40 frames:
             textured 0.88 px median, disagreeing with the edge path's 0.28 px by 0.8 px median
             per frame, at most 1.8; homogeneous: 0.34 px against the edge path's 2.1 px, 3.0
@@ -92,7 +92,11 @@ class ReconstructionOptions:
             it raises the oriented-gradient score by `edge_coarse_min_gain` per frame; at most
             `edge_coarse_max_candidates` shifts (coarser steps where three directions are open).
         edge_min_gain: the correction is kept when the frames' edge support (share of samples
-            within `FrameFitOptions.support_px` of an image edge) rises by at least this.
+            within `FrameFitOptions.support_px` of an image edge) rises by at least this (the
+            one-wall walk of `tests/unit/test_reconstruction_sfm.py` starts at support 1.0: a
+            correction there only moved the poses within the edges' noise).
+        edge_min_support: the edges confirm a part's placement (`ReconstructionOrientation.determined`
+            with the facades fixing the horizontal) when its final edge support reaches this.
     """
 
     tracks: TrackOptions = field(default_factory=TrackOptions)
@@ -135,7 +139,8 @@ class ReconstructionOptions:
     edge_iterations: int = 8
     edge_radius_start_px: float = 16.0
     edge_radius_decay: float = 0.75
-    edge_min_gain: float = 0.0
+    edge_min_gain: float = 0.01
+    edge_min_support: float = 0.5
     edge_coarse_min_sigma_m: float = 0.05
     edge_coarse_max_m: float = 1.0
     edge_coarse_step_m: float = 0.04

@@ -48,7 +48,7 @@ from workers.pipeline.orientation.smoothing import prior_noise, smooth_poses
 from workers.pipeline.orientation.tracks import Tracks, track_sequence
 from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe, WireframeError, mesh_wireframe
 from workers.pipeline.reconstruction.colmap import Adjusted, components, reconstruct
-from workers.pipeline.reconstruction.edge_placement import fit_on_edges
+from workers.pipeline.reconstruction.edge_placement import EdgePlacement, fit_on_edges
 from workers.pipeline.reconstruction.options import ReconstructionOptions
 from workers.pipeline.reconstruction.plane_adjust import adjust_on_planes
 from workers.pipeline.reconstruction.planes import fit_planes, normals_span
@@ -67,8 +67,9 @@ class ReconstructionOrientation:
         runs: per run of frames its figures (`to_dict`).
         determined: registered frames whose part's facade coregistration fixed both horizontal
             shift directions (facades of two orientations: `facades_fix_horizontal`) and whose
-            edge placement (`edge_placement`, the height) was kept; the others keep the GNSS/INS
-            placement's shift along what planes and edges leave open.
+            final placement the model edges confirm (`edge_placement`: support of at least
+            `edge_min_support`, the height); the others keep the GNSS/INS placement's shift
+            along what planes and edges leave open.
     """
 
     poses: dict[int, Pose]
@@ -299,8 +300,16 @@ def _place(
         "edge_placement": None if ep is None else ep.to_dict(),
         "normal_spread": round(spread, 4),
         "facades_fix_horizontal": spans,
-        "_result": (out_poses, cov, _tracks(adj, Xm), spans and ep is not None and ep.kept),
+        "_result": (out_poses, cov, _tracks(adj, Xm), spans and _edges_confirm(ep, options)),
     }
+
+
+def _edges_confirm(ep: EdgePlacement | None, options: ReconstructionOptions) -> bool:
+    """Whether the model edges confirm the part's final placement: its edge support (after the
+    correction where kept, else before) reaches `edge_min_support`."""
+    if ep is None:
+        return False
+    return (ep.support_after if ep.kept else ep.support_before) >= options.edge_min_support
 
 
 def _prior_info(sig_m: float, sig_deg: float, sig_s: float) -> np.ndarray:
