@@ -13,10 +13,11 @@ there the two disagree by 0.5–9 px per frame (median 3.0 on 40 frames); on tex
 0.4–1.8 px (median 0.8: the reconstruction's own error grows along the drive, 0.88 px; edges:
 0.28 px). The test is per edge block (median over its frames), as the edge path accepts per
 block; the threshold (2 px) sits between those two scenes. The reconstruction overrides only
-where its facades fixed both horizontal shift directions and its edge placement the height
-(`ReconstructionOrientation.determined`): a drive along a single facade leaves its in-plane
-shift and the scale to the GNSS/INS and to what edges the frames see (bench seed 2: a vertical
-corner only, 4.5 px, edges 2.9 px), and there the edges stay.
+where the model fixes its placement (`ReconstructionOrientation.determined`: edges confirm it,
+and facades of two orientations fix the horizontal, or on a single facade the edges in view
+fix its in-plane shift, height and scale): a drive along one facade with a single vertical
+corner in view leaves the shift along the line of sight to the GNSS/INS (bench seed 2: 4.5 px,
+the edge path 0.4 px on those frames), and there the edges stay.
 """
 
 from __future__ import annotations

@@ -80,8 +80,15 @@ class EdgePlacement:
             "rotation_deg": [round(float(np.degrees(x)), 3) for x in self.q[:3]],
             "shift_m": [round(float(x), 3) for x in self.q[3:6]],
             "scale": round(self.correction.scale, 4),
+            "shift_sigma_m": round(self.shift_sigma_m, 3),
             "kept": self.kept,
         }
+
+    @property
+    def shift_sigma_m(self) -> float:
+        """σ (m) of the least determined shift direction (largest eigenvalue of the shift block
+        of `covariance`): what edges and planes together leave open."""
+        return float(np.sqrt(max(np.linalg.eigvalsh(self.covariance[3:6, 3:6])[-1], 0.0)))
 
 
 def _frame_jacobian(pose: Pose, pivot: np.ndarray) -> np.ndarray:

@@ -65,11 +65,12 @@ class ReconstructionOrientation:
         tracks: the kept observations with their points in the model CRS.
         ties, tie_rms_px: per registered frame its observations and their reprojection RMS (px).
         runs: per run of frames its figures (`to_dict`).
-        determined: registered frames whose part's facade coregistration fixed both horizontal
-            shift directions (facades of two orientations: `facades_fix_horizontal`) and whose
-            final placement the model edges confirm (`edge_placement`: support of at least
-            `edge_min_support`, the height); the others keep the GNSS/INS placement's shift
-            along what planes and edges leave open.
+        determined: registered frames whose part's final placement the model edges confirm
+            (`edge_placement`: support of at least `edge_min_support`, the height) and whose
+            facade coregistration fixed both horizontal shift directions (facades of two
+            orientations: `facades_fix_horizontal`) or, on one facade, whose edges fixed what
+            it leaves open (`edge_max_shift_sigma_m`); the others keep the GNSS/INS
+            placement's shift along what planes and edges leave open.
     """
 
     poses: dict[int, Pose]
@@ -300,16 +301,20 @@ def _place(
         "edge_placement": None if ep is None else ep.to_dict(),
         "normal_spread": round(spread, 4),
         "facades_fix_horizontal": spans,
-        "_result": (out_poses, cov, _tracks(adj, Xm), spans and _edges_confirm(ep, options)),
+        "_result": (out_poses, cov, _tracks(adj, Xm), _determined(ep, spans, options)),
     }
 
 
-def _edges_confirm(ep: EdgePlacement | None, options: ReconstructionOptions) -> bool:
-    """Whether the model edges confirm the part's final placement: its edge support (after the
-    correction where kept, else before) reaches `edge_min_support`."""
+def _determined(ep: EdgePlacement | None, spans: bool, options: ReconstructionOptions) -> bool:
+    """Whether the part's placement is fixed by the model: the edges confirm it (edge support
+    after the correction where kept, else before, of `edge_min_support` or more) and either
+    facades of two orientations fix the horizontal shift (`spans`) or planes and edges together
+    fix every shift direction within `edge_max_shift_sigma_m` (a single facade with the
+    corners, eaves and ground lines in view)."""
     if ep is None:
         return False
-    return (ep.support_after if ep.kept else ep.support_before) >= options.edge_min_support
+    confirmed = (ep.support_after if ep.kept else ep.support_before) >= options.edge_min_support
+    return confirmed and (spans or ep.shift_sigma_m <= options.edge_max_shift_sigma_m)
 
 
 def _prior_info(sig_m: float, sig_deg: float, sig_s: float) -> np.ndarray:
