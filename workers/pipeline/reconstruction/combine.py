@@ -55,9 +55,9 @@ def combine(
     max_disagreement_px: float,
 ) -> tuple[SequenceOrientation, list[int], list[int]]:
     """`edges` with the frames it did not orient taken from `ro` where registered, and the frames
-    of every accepted edge block where the two disagree by more than `max_disagreement_px`
-    (median over the block's frames) while the reconstruction's facades fixed both horizontal
-    shift directions there (`ReconstructionOrientation.determined`; module docstring). Returns the
+    of every accepted edge block whose reconstruction placement the model fixed
+    (`ReconstructionOrientation.determined`; module docstring) where the two disagree there by
+    more than `max_disagreement_px` (median over those frames of the block). Returns the
     combination, the frames taken because the edge path left them, and those taken because the
     poses disagreed."""
     left = [f for f in ro.registered if f not in edges.covariance and f in edges.poses]
@@ -68,12 +68,10 @@ def combine(
     ]
     disagree: set[int] = set()
     for a, b in spans:
-        block = [f for f in both if a <= f <= b]
-        if not block or float(np.median([d[f] for f in block])) <= max_disagreement_px:
-            continue
-        # only a reconstruction whose facades fix the horizontal shift overrides the edges
-        # (one facade, or parallel ones, leave the shift along them to the GNSS/INS)
-        if all(f in ro.determined for f in block):
+        # only where the model fixes the reconstruction's placement does it override the edges
+        # (one facade, or parallel ones, without edges fixing the rest leave a shift to the GNSS/INS)
+        block = [f for f in both if a <= f <= b and f in ro.determined]
+        if block and float(np.median([d[f] for f in block])) > max_disagreement_px:
             disagree.update(block)
     taken = sorted(set(left) | disagree)
     poses, cov = dict(edges.poses), dict(edges.covariance)
