@@ -16,7 +16,10 @@ assigned to the model's facade planes and the similarity corrected by their dist
 (`planes.fit_planes`) → every registered frame's pose through the final similarity → the block
 adjusted once more with the facade points held to their planes and the priors as a common
 error plus per-frame noise (`plane_adjust.adjust_on_planes`: what bent the block, one similarity
-cannot remove; where the facades fix both horizontal directions, `options.plane_adjustment`).
+cannot remove; where the facades fix both horizontal directions, `options.plane_adjustment`) →
+the part's similarity corrected by the model edges its frames see (`edge_placement.fit_on_edges`:
+the height walls leave to the GNSS/INS, and on a single facade its in-plane shift, turn and
+scale where the frames show edges; `options.edge_placement`).
 
 Why the LK tracks and not pycolmap's SIFT: on the one-facade sequence (`bench/orientation_sfm.py`,
 `features_on_tir`, 40 frames) the LK tracks give 1013 observations of which 875 lie within 1 px
@@ -43,7 +46,9 @@ from workers.pipeline.geometry.pose_increments import project_jacobian
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.smoothing import prior_noise, smooth_poses
 from workers.pipeline.orientation.tracks import Tracks, track_sequence
+from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe, WireframeError, mesh_wireframe
 from workers.pipeline.reconstruction.colmap import Adjusted, components, reconstruct
+from workers.pipeline.reconstruction.edge_placement import EdgePlacement, fit_on_edges
 from workers.pipeline.reconstruction.options import ReconstructionOptions
 from workers.pipeline.reconstruction.plane_adjust import adjust_on_planes
 from workers.pipeline.reconstruction.planes import fit_planes, normals_span
@@ -60,9 +65,12 @@ class ReconstructionOrientation:
         tracks: the kept observations with their points in the model CRS.
         ties, tie_rms_px: per registered frame its observations and their reprojection RMS (px).
         runs: per run of frames its figures (`to_dict`).
-        determined: registered frames whose part's facade coregistration fixed both horizontal
-            shift directions (facades of two orientations: `facades_fix_horizontal`); the
-            others keep the GNSS/INS placement's shift along what the planes leave open.
+        determined: registered frames whose part's final placement the model edges confirm
+            (`edge_placement`: support of at least `edge_min_support`, the height) and whose
+            facade coregistration fixed both horizontal shift directions (facades of two
+            orientations: `facades_fix_horizontal`) or, on one facade, whose edges fixed what
+            it leaves open (`edge_max_shift_sigma_m`); the others keep the GNSS/INS
+            placement's shift along what planes and edges leave open.
     """
 
     poses: dict[int, Pose]
@@ -146,13 +154,14 @@ def orient_reconstruction(
     figures: list[dict] = []
     sig_m = float(np.mean(accuracy.position_m)) if accuracy is not None else options.prior_sigma_m
     sig_deg = float(np.mean(accuracy.attitude_deg)) if accuracy is not None else options.prior_sigma_deg
+    wf = _wireframe(raycaster) if options.edge_placement else None
     for run in runs(frames, times, options.max_gap_s):
         fig, placed_parts = _orient_run(
-            camera, raycaster, run, frame_source, prior, times, sig_m, sig_deg, options
+            camera, raycaster, wf, run, frame_source, prior, times, sig_m, sig_deg, options
         )
         figures.append(fig)
-        for (placed, cov_run, tracks, spans), adj in placed_parts:
-            if spans:
+        for (placed, cov_run, tracks, fixed), adj in placed_parts:
+            if fixed:
                 determined.update(placed)
             for f, p in placed.items():
                 poses[f], cov[f] = p, cov_run[f]
@@ -162,9 +171,18 @@ def orient_reconstruction(
     return ReconstructionOrientation(poses, cov, Tracks.concat(parts), ties, rms, figures, determined)
 
 
+def _wireframe(caster: RayCaster) -> Wireframe | None:
+    """The scene's wireframe (model CRS; None when the mesh has none)."""
+    try:
+        return mesh_wireframe(caster.mesh, EdgeOptions())
+    except WireframeError:
+        return None
+
+
 def _orient_run(
     camera: Camera,
     caster: RayCaster,
+    wireframe: Wireframe | None,
     run: list[int],
     source: FrameSource,
     prior: Mapping[int, Pose],
@@ -184,7 +202,9 @@ def _orient_run(
         smooth_poses(prior, run, times, options.start_smoothing_s) if noisy else {f: prior[f] for f in run}
     )
     tracks = track_sequence(camera, run, _LazyImages(source, run), start, caster, options.tracks)
-    low = len(tracks.track) < options.min_observations_per_frame * len(run)
+    seen, count = np.unique(tracks.frame, return_counts=True)
+    per_frame = dict(zip(seen.tolist(), count.tolist(), strict=True))
+    low = float(np.median([per_frame.get(f, 0) for f in run])) < options.min_observations_per_frame
     if low:  # a facade textured all over: nothing stands out of the frame's median texture
         weak = replace(options.tracks, min_texture_ratio=options.low_texture_ratio)
         tracks = track_sequence(camera, run, _LazyImages(source, run), start, caster, weak)
@@ -209,7 +229,11 @@ def _orient_run(
     if not adj.sigma0_px <= options.max_sigma0_px:
         return {**fig, "registered": 0, "reason": f"reprojection σ0 {adj.sigma0_px:.2f} px"}, []
     parts = components(adj, options.min_shared_points)
-    fig["parts"] = [_place(camera, caster, part, prior, origin, sig_m, sig_deg, options) for part in parts]
+    images = _LazyImages(source, run)
+    fig["parts"] = [
+        _place(camera, caster, wireframe, images, part, prior, origin, sig_m, sig_deg, options)
+        for part in parts
+    ]
     fig["registered"] = sum(len(p.poses) for p in parts)
     return fig, [(f.pop("_result"), part) for f, part in zip(fig["parts"], parts, strict=True)]
 
@@ -217,6 +241,8 @@ def _orient_run(
 def _place(
     camera: Camera,
     caster: RayCaster,
+    wireframe: Wireframe | None,
+    images: Mapping[int, np.ndarray],
     adj: Adjusted,
     prior: Mapping[int, Pose],
     origin: np.ndarray,
@@ -252,6 +278,13 @@ def _place(
         if pa is not None:
             out_poses, Xm = pa.poses, pa.points
     place_cov = np.zeros((6, 6)) if fit is None else _pose_block(fit.covariance)
+    ep = None
+    if wireframe is not None:
+        info = np.diag(_prior_info(sig_m, sig_deg, sig_s)) if fit is None else np.linalg.inv(fit.covariance)
+        ep = fit_on_edges(camera, caster, wireframe, out_poses, images, pivot, info, options)
+        if ep is not None and ep.kept:
+            out_poses, Xm = ep.correction.poses(out_poses), ep.correction.points(Xm)
+            place_cov = _pose_block(ep.covariance)
     cov = {f: _resection_covariance(camera, p, Xm, adj, f) + place_cov for f, p in out_poses.items()}
     return {
         "frames": [min(rec_poses), max(rec_poses)],
@@ -265,10 +298,28 @@ def _place(
         "point_to_plane_rms_m_before": None if fit is None else round(fit.rms_before_m, 3),
         "point_to_plane_rms_m_after": None if fit is None else round(fit.rms_after_m, 3),
         "plane_adjustment": None if pa is None else pa.to_dict(),
+        "edge_placement": None if ep is None else ep.to_dict(),
         "normal_spread": round(spread, 4),
         "facades_fix_horizontal": spans,
-        "_result": (out_poses, cov, _tracks(adj, Xm), spans),
+        "_result": (out_poses, cov, _tracks(adj, Xm), _determined(ep, spans, options)),
     }
+
+
+def _determined(ep: EdgePlacement | None, spans: bool, options: ReconstructionOptions) -> bool:
+    """Whether the part's placement is fixed by the model: the edges confirm it (edge support
+    after the correction where kept, else before, of `edge_min_support` or more) and either
+    facades of two orientations fix the horizontal shift (`spans`) or planes and edges together
+    fix every shift direction within `edge_max_shift_sigma_m` (a single facade with the
+    corners, eaves and ground lines in view)."""
+    if ep is None:
+        return False
+    confirmed = (ep.support_after if ep.kept else ep.support_before) >= options.edge_min_support
+    return confirmed and (spans or ep.shift_sigma_m <= options.edge_max_shift_sigma_m)
+
+
+def _prior_info(sig_m: float, sig_deg: float, sig_s: float) -> np.ndarray:
+    """`(7,)` a-priori information of a placement correction `(ω, τ, σ)` (rad⁻², m⁻², 1)."""
+    return 1.0 / np.r_[np.full(3, np.radians(sig_deg)), np.full(3, sig_m), sig_s] ** 2
 
 
 def _pose_block(c7: np.ndarray) -> np.ndarray:

@@ -20,10 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from workers.pipeline.geometry.pose_increments import so3_exp
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.reconstruction.options import ReconstructionOptions
-from workers.pipeline.reconstruction.similarity import Similarity
+from workers.pipeline.reconstruction.similarity import Similarity, similarity_about
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,14 +116,14 @@ def fit_planes(
     a = None
     N = np.zeros((7, 7))
     for _ in range(options.plane_rounds):
-        S = _similarity(q, c)
+        S = similarity_about(q, c)
         a = assign_planes(S.points(X), S.scale * centers @ S.R.T + S.t, caster, options)
         if len(a.index) < options.min_plane_points:
             return None
         first = first or a
         q, N = _gauss_newton(q, c, X[a.index], a, prior_w, options.plane_loss_m)
     assert a is not None and first is not None
-    S = _similarity(q, c)
+    S = similarity_about(q, c)
     before, after = first.distances(X), a.distances(S.points(X))
     r2 = after**2
     sigma2 = max(float(np.mean(np.minimum(r2, options.plane_loss_m**2 * 9))), 1e-6)
@@ -150,12 +149,6 @@ def normals_span(normals: np.ndarray) -> float:
     return max(float(np.linalg.eigvalsh(h.T @ h / len(h))[0]), 0.0)
 
 
-def _similarity(q: np.ndarray, c: np.ndarray) -> Similarity:
-    """`X' = e^σ R(ω) (X − c) + c + τ` for `q = (ω, τ, σ)` as a `Similarity`."""
-    s, R = float(np.exp(q[6])), so3_exp(q[:3])
-    return Similarity(s, R, c + q[3:6] - s * R @ c)
-
-
 def _gauss_newton(
     q: np.ndarray,
     c: np.ndarray,
@@ -169,7 +162,7 @@ def _gauss_newton(
     and the prior on `q`; returns `q` and the weighted `JᵀWJ` `(7, 7)` of the distances (m⁻²·m²)."""
     JtJ = np.zeros((7, 7))
     for _ in range(iterations):
-        S = _similarity(q, c)
+        S = similarity_about(q, c)
         Y = S.scale * (X - c) @ S.R.T  # rotated, scaled offsets from the centroid
         r = np.einsum("ni,ni->n", Y + c + q[3:6], a.normal) - a.offset
         J = np.concatenate(

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import so3_exp
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +48,12 @@ class Similarity:
         return Similarity(
             other.scale * self.scale, other.R @ self.R, other.scale * other.R @ self.t + other.t
         )
+
+
+def similarity_about(q: np.ndarray, c: np.ndarray) -> Similarity:
+    """`X' = e^σ R(ω) (X − c) + c + τ` for `q = (ω [rad], τ [m], σ)` `(7,)` about `c` `(3,)`."""
+    s, R = float(np.exp(q[6])), so3_exp(q[:3])
+    return Similarity(s, R, c + q[3:6] - s * R @ c)
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> Similarity:
