@@ -90,7 +90,15 @@ def _distortion_jacobian(camera: Camera, ab: np.ndarray) -> np.ndarray:
 def project_jacobian(camera: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World points `(N, 3)` -> (pixels `(N, 2)`, depth `(N,)`, `∂uv/∂δ` `(N, 2, 6)`)."""
     R = pose.R_world_from_cam
-    xc = (np.asarray(X, dtype=np.float64) - pose.center) @ R
+    return camera_point_jacobian(camera, (np.asarray(X, dtype=np.float64) - pose.center) @ R, R)
+
+
+def camera_point_jacobian(
+    camera: Camera, xc: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`project_jacobian` from the points in the camera frame `xc` `(N, 3)` and the rotation
+    world from camera `R`, one `(3, 3)` or one per point `(N, 3, 3)` -> (pixels `(N, 2)`, depth
+    `(N,)`, `∂uv/∂δ` `(N, 2, 6)` on `δ = (ω_cam [rad], dC_world [m])`)."""
     x, y, z = xc[:, 0], xc[:, 1], np.maximum(xc[:, 2], 1e-6)
     ab = np.stack([x / z, y / z], axis=1)
     uv = camera.pixel_from_normalized(ab)
@@ -107,6 +115,5 @@ def project_jacobian(camera: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndar
     dxc[:, 0, 1], dxc[:, 0, 2] = -z, y  # ∂x_c/∂ω = [x_c]× (x_c' = exp(-ω) x_c)
     dxc[:, 1, 0], dxc[:, 1, 2] = z, -x
     dxc[:, 2, 0], dxc[:, 2, 1] = -y, x
-    dxc[:, :, 3:] = -R.T
-    J = D @ dab @ dxc
-    return uv, xc[:, 2], J
+    dxc[:, :, 3:] = -np.swapaxes(R, -1, -2)
+    return uv, xc[:, 2], D @ dab @ dxc

@@ -26,8 +26,8 @@ import numpy as np
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
-from workers.pipeline.geometry.pose_increments import _distortion_jacobian
-from workers.pipeline.orientation.edge_observations import tukey
+from workers.pipeline.geometry.pose_increments import camera_point_jacobian
+from workers.pipeline.orientation.edge_observations import edge_offsets, tukey
 from workers.pipeline.orientation.features import ImageFeatures
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.wireframe import VisibleWireframe
@@ -56,25 +56,7 @@ def stacked_project_jacobian(
     """`pose_increments.project_jacobian` with a pose per point: rotations `R` `(N, 3, 3)`
     (world from camera), centres `C` `(N, 3)`, world points `X` `(N, 3)` -> (pixels `(N, 2)`,
     depth `(N,)`, `∂uv/∂δ` `(N, 2, 6)`)."""
-    xc = np.einsum("ni,nij->nj", X - C, R)
-    x, y, z = xc[:, 0], xc[:, 1], np.maximum(xc[:, 2], 1e-6)
-    ab = np.stack([x / z, y / z], axis=1)
-    uv = camera.pixel_from_normalized(ab)
-    n = len(xc)
-    D = _distortion_jacobian(camera, ab)
-    D[:, 0, :] *= camera.fx
-    D[:, 1, :] *= camera.fy
-    dab = np.zeros((n, 2, 3))
-    dab[:, 0, 0] = 1 / z
-    dab[:, 0, 2] = -x / z**2
-    dab[:, 1, 1] = 1 / z
-    dab[:, 1, 2] = -y / z**2
-    dxc = np.zeros((n, 3, 6))
-    dxc[:, 0, 1], dxc[:, 0, 2] = -z, y
-    dxc[:, 1, 0], dxc[:, 1, 2] = z, -x
-    dxc[:, 2, 0], dxc[:, 2, 1] = -y, x
-    dxc[:, :, 3:] = -R.transpose(0, 2, 1)
-    return uv, xc[:, 2], D @ dab @ dxc
+    return camera_point_jacobian(camera, np.einsum("ni,nij->nj", X - C, R), R)
 
 
 def stacked_edge_equations(
@@ -169,23 +151,4 @@ def _edge_search(
     for j, f in enumerate(feats):
         sl = slice(starts[j], starts[j] + counts[j])
         g[sl] = cv2.remap(f.grad, pu32[sl], pv32[sl], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    gx, gy = g[..., 0].astype(np.float64), g[..., 1].astype(np.float64)
-    gn = np.abs(gx * normal[:, 0:1] + gy * normal[:, 1:2])
-    gm = np.hypot(gx, gy)
-    cos_lim = np.cos(np.radians(options.edge_max_angle_deg))
-    valid = inside & (gn >= options.edge_min_gradient_rel * ref[:, None]) & (gn >= cos_lim * gm)
-    penalty = np.exp(-0.5 * (k[None, :] / (options.edge_distance_scale * max(R, 1))) ** 2)
-    score = np.where(valid, gn * penalty, -1.0)
-    left = np.concatenate([np.full((n, 1), np.inf), gn[:, :-1]], axis=1)
-    right = np.concatenate([gn[:, 1:], np.full((n, 1), np.inf)], axis=1)
-    score = np.where((gn >= left) & (gn >= right), score, -1.0)
-    j = np.argmax(score, axis=1)
-    rows = np.arange(n)
-    found = score[rows, j] > 0
-    jl = np.clip(j - 1, 0, 2 * R)
-    jr = np.clip(j + 1, 0, 2 * R)
-    gl, gc, gr = gn[rows, jl], gn[rows, j], gn[rows, jr]
-    den = gl - 2 * gc + gr
-    interior = (np.abs(den) > 1e-12) & (jl != j) & (jr != j)
-    sub = np.where(interior, 0.5 * (gl - gr) / np.where(den == 0, 1, den), 0)
-    return k[j] + np.clip(sub, -0.5, 0.5), found
+    return edge_offsets(g, normal, inside, ref[:, None], R, options)

@@ -41,6 +41,7 @@ __all__ = [
     "FrameEdges",
     "FrameWireframes",
     "cull_wireframe",
+    "edge_offsets",
     "edge_search",
     "edge_support",
     "frame_box",
@@ -77,11 +78,25 @@ def edge_search(
     inside = (pu >= 0) & (pu <= w - 1) & (pv >= 0) & (pv <= h - 1)
     g = cv2.remap(feats.grad, pu.astype(np.float32), pv.astype(np.float32), cv2.INTER_LINEAR,
                   borderMode=cv2.BORDER_REPLICATE)
+    return edge_offsets(g, normal, inside, feats.grad_ref, R, options)
+
+
+def edge_offsets(
+    g: np.ndarray, normal: np.ndarray, inside: np.ndarray, grad_ref: float | np.ndarray, R: int,
+    options: FrameFitOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The edge along each search line of `edge_search`: gradients `g` `(N, 2R + 1, 2)` (x, y)
+    sampled at offsets `k = -R .. R` px along `normal` `(N, 2)`, `inside` `(N, 2R + 1)` where the
+    sample lies in the image, `grad_ref` the gradient scale (a number, or `(N, 1)` one per line).
+
+    Returns (signed offset `(N,)` px, sub-pixel; found `(N,)` bool)."""
+    n = len(g)
+    k = np.arange(-R, R + 1, dtype=np.float64)
     gx, gy = g[..., 0].astype(np.float64), g[..., 1].astype(np.float64)
     gn = np.abs(gx * normal[:, 0:1] + gy * normal[:, 1:2])
     gm = np.hypot(gx, gy)
     cos_lim = np.cos(np.radians(options.edge_max_angle_deg))
-    valid = inside & (gn >= options.edge_min_gradient_rel * feats.grad_ref) & (gn >= cos_lim * gm)
+    valid = inside & (gn >= options.edge_min_gradient_rel * grad_ref) & (gn >= cos_lim * gm)
     # only interior local maxima of the gradient along the search line (a rising gradient at the
     # end of the line is no edge within the radius)
     valid[:, 1:] &= gn[:, 1:] >= gn[:, :-1]
