@@ -149,7 +149,7 @@ def run(
     no_orient: bool = typer.Option(
         False,
         "--no-orient",
-        help="With refinement: skip the sequence orientation of drives and terrestrial sequences "
+        help="With refinement: skip the sequence orientation of drives, terrestrial sequences and flights "
         "(feature tracks and a block adjustment of all frames with the model before the buildings).",
     ),
     orientation: Orientation = typer.Option(
