@@ -155,14 +155,8 @@ class SurfaceTexture:
         self.obs_angle[hit] = np.nan
         self.obs_frame[hit] = -1
         r, c = np.nonzero(hit.any(axis=0))
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore"):  # texels left with none: NaN, count 0
             self._fuse(r, c)
-        empty = ~np.isfinite(self.obs_res[:, r, c]).any(axis=0)
-        re_, ce = r[empty], c[empty]
-        self.frame[re_, ce] = -1
-        self.count[re_, ce] = 0
-        self.value[re_, ce] = np.nan
-        self.view_angle[re_, ce] = np.nan
         return n
 
     def _fuse(self, r: np.ndarray, c: np.ndarray) -> None:
@@ -187,7 +181,8 @@ class SurfaceTexture:
         med = 0.5 * (lo + hi)
         centre = np.where(n_use == 2, v[best, n], med)
         inlier = usable & (np.abs(v - centre) <= np.float32(o.outlier_sigmas * o.noise))
-        inlier[best, n] |= ~inlier.any(axis=0)  # nothing agrees with the centre: keep the best
+        # nothing agrees with the centre: keep the best (a texel left without observations keeps none)
+        inlier[best, n] |= ~inlier.any(axis=0) & np.isfinite(best_res)
         w = np.where(inlier, 1.0 / np.maximum(res, 1e-6) ** 2, 0.0).astype(np.float32)
         self.value[r, c] = (np.where(inlier, v, 0.0) * w).sum(axis=0) / w.sum(axis=0)
         self.count[r, c] = inlier.sum(axis=0)
