@@ -74,20 +74,13 @@ def kept_result(job_id: uuid.UUID, gml_id: str, out: Path) -> BuildingResult | N
     except (FileNotFoundError, EOFError):
         return None
     src = kept_dir(job_id)
-    linked: list[Path] = []
+    if not all((src / tile.name).is_file() for tile in result.tiles):
+        return None
     for tile in result.tiles:
         dest = out / tile.name
         dest.parent.mkdir(parents=True, exist_ok=True)
         try:
-            try:
-                os.link(src / tile.name, dest)
-            except FileNotFoundError:
-                raise
-            except OSError:  # a file system without hard links
-                shutil.copyfile(src / tile.name, dest)
-        except FileNotFoundError:
-            for p in linked:
-                p.unlink(missing_ok=True)
-            return None
-        linked.append(dest)
+            os.link(src / tile.name, dest)
+        except OSError:  # a file system without hard links
+            shutil.copyfile(src / tile.name, dest)
     return result
