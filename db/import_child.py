@@ -102,11 +102,16 @@ def batches(
     starts."""
     pending: list[Building] = []
     held: list[list[Building]] = []
+
+    def release() -> Iterator[tuple[str, Any]]:
+        """The held batches, transformed, in order."""
+        for h in held:
+            yield "batch", transform(h)
+        held.clear()
+
     for kind, obj in _events(path, huge_tree, part):
         if kind == "appearance":
-            for h in held:
-                yield "batch", transform(h)
-            held = []
+            yield from release()
             yield kind, obj
             continue
         pending.append(obj)
@@ -114,13 +119,10 @@ def batches(
             if ready is not None and len(held) < AHEAD and not ready():
                 held.append(pending)
             else:
-                for h in held:
-                    yield "batch", transform(h)
-                held = []
+                yield from release()
                 yield "batch", transform(pending)
             pending = []
-    for h in held:
-        yield "batch", transform(h)
+    yield from release()
     if pending:
         yield "batch", transform(pending)
 
