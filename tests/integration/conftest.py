@@ -13,6 +13,8 @@ from collections.abc import Callable, Iterator
 import psycopg
 import pytest
 
+from tests.integration.stack import die_with_tests
+
 PG_SERVER = os.environ.get("CITYTHERM_TEST_PG", "postgresql://postgres@127.0.0.1:5432")
 TEST_DB = os.environ.get("CITYTHERM_TEST_DATABASE", "citytherm_test")
 REDIS_URL = os.environ.get("CITYTHERM_TEST_REDIS", "redis://127.0.0.1:6379/15")
@@ -156,6 +158,7 @@ class CeleryWorkers:
                 stdout=log,
                 stderr=self.subprocess.STDOUT,
                 start_new_session=True,
+                preexec_fn=die_with_tests,
             )
         node = f"{name}@citytherm-test"
         deadline = time.monotonic() + 60
@@ -292,7 +295,10 @@ def api_server_factory(
                 "--log-level",
                 "warning",
             ]
-            procs.append(subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT))
+            proc = subprocess.Popen(
+                cmd, env=env, stdout=out, stderr=subprocess.STDOUT, preexec_fn=die_with_tests
+            )
+            procs.append(proc)
         base = f"http://127.0.0.1:{port}"
         for _ in range(1200):  # until it listens (a bound on waiting, not a timing assertion)
             if procs[-1].poll() is not None:

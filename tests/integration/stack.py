@@ -40,6 +40,17 @@ def wait_for(what: str, cond: Callable[[], Any], patience_s: float = 300.0, step
     raise TimeoutError(f"gave up waiting for {what}")
 
 
+def die_with_tests() -> None:
+    """`preexec_fn` of every server and worker the tests start: the child gets SIGTERM when the
+    pytest process that started it ends, however it ends (SIGKILL included), through Linux
+    `PR_SET_PDEATHSIG`; so no worker or server outlives an interrupted test run."""
+    import ctypes
+    import signal
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+
+
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that nothing listens on now."""
     with socket.socket() as s:
@@ -141,7 +152,7 @@ class PrivateRedis:
         self.proc = subprocess.Popen(
             ["redis-server", "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
              "--appendonly", "no", "--dir", str(self.root), "--logfile", str(self.root / "redis.log")],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=die_with_tests,
         )  # fmt: skip
         wait_for_port(self.port)
 

@@ -35,7 +35,7 @@ from lxml import etree
 from db.citygml.reader import read_model
 from db.synth_files import write_synthetic_package
 from tests.integration.conftest import citytherm_exe, content_md5, tar_gz
-from tests.integration.stack import PrivatePostgres, PrivateRedis, free_port, remove
+from tests.integration.stack import PrivatePostgres, PrivateRedis, die_with_tests, free_port, remove
 from tests.integration.stack import wait_for as stack_wait_for
 from workers.job import RunOptions
 from workers.pipeline.synth import BUNDLED_MODEL, ErrorOptions, SynthOptions, synthesize
@@ -86,7 +86,7 @@ class Stack:
         with open(self.logs / f"{name}.log", "ab") as log:
             self.procs[name] = subprocess.Popen(
                 [citytherm_exe(), *args], env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                start_new_session=True,
+                start_new_session=True, preexec_fn=die_with_tests,
             )  # fmt: skip
 
     def sql(self, query: str, *params: Any) -> list[tuple[Any, ...]]:
