@@ -344,3 +344,56 @@ def test_the_start_comes_from_a_stretch_when_no_correction_fits_the_whole_drive(
     rejected = calibrate_sequence(res.manifest.camera, caster, list(range(N_FRAMES)), MemoryFrames(imgs),
                                   dict(enumerate(priors)), times, res.manifest.accuracy, one)
     assert not rejected.accepted and "no common correction" in rejected.reason
+
+
+@dataclass(frozen=True)
+class DelayTestFrame:
+    """A frame for `calibration_delay.delay_search`: index, prior and design `(6, 10)`."""
+
+    index: int
+    prior: Pose
+    A: np.ndarray
+
+
+def test_the_delay_search_says_when_no_frame_tells_delays_apart(drive: Drive) -> None:
+    """At the drive's 0.1 s frame spacing the delay moves the samples and is searched (a delay);
+    with the same poses 10 s apart (100 times slower) a delay step moves no sample half a pixel:
+    None, not 0 s."""
+    from workers.pipeline.orientation.calibration_delay import delay_search
+    from workers.pipeline.orientation.calibration_model import frame_designs
+
+    res, imgs, caster, _ = drive
+    truth = list(res.truth.poses)
+    o = CalibrationOptions()
+    wfs = FrameWireframes(mesh_wireframe(res.mesh, o.edges), res.manifest.camera)
+    frames = list(range(N_FRAMES))
+    picked = frames[::4]
+    found = {}
+    for spacing in (0.1, 10.0):
+        A = frame_designs(frames, dict(enumerate(truth)), {i: spacing * i for i in frames}, picked)
+        data = [DelayTestFrame(i, truth[i], A[i]) for i in picked]
+        found[spacing] = delay_search(res.manifest.camera, wfs, caster, data, dict(enumerate(imgs)),
+                                      np.zeros(10), o.delay_search_s, o.delay_step_s, o.edges, o.fit)
+    assert found[0.1] is not None and abs(found[0.1]) <= o.delay_step_s, found  # the truth: no delay
+    assert found[10.0] is None, found
+
+
+def test_a_delay_the_frames_cannot_tell_apart_keeps_the_adjusted_one(drive: Drive,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """When the delay search cannot tell delays apart (None: a flight's straight lines), the
+    adjusted parameters stand, τ included: the adjustment is not run again from τ = 0."""
+    from workers.pipeline.orientation import calibration as calibration_module
+
+    real = calibration_module._adjust
+    starts: list[np.ndarray] = []
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        starts.append(np.array(args[4]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(calibration_module, "_adjust", counted)
+    monkeypatch.setattr(calibration_module, "delay_search", lambda *args, **kwargs: None)
+    truth = list(drive[0].truth.poses)
+    cal, _ = calibrate(drive, [offset_pose(p, 2.0, 0.0) for p in truth])
+    assert cal.accepted, cal.reason
+    assert len(starts) == 1 and starts[0][9] == 0.0, starts

@@ -44,8 +44,8 @@ Method:
    along each projected edge sample, Tukey weights; `edge_observations.normal_equations`) with a
    shrinking search radius; θ has a weighted prior of zero (`Accuracy` for `ω` and `b`,
    `lever_arm_sigma_m`, `time_delay_sigma_s`); τ is then searched on a grid (oriented-gradient
-   score, all candidate delays of a frame projected at once) and, when it moved, θ adjusted
-   again from there;
+   score, all candidate delays of a frame projected at once; not when no frame turns or moves
+   enough to tell the delays apart) and, when it moved, θ adjusted again from there;
 4. accepted when the mean edge support of the frames reaches `min_mean_support`, at least
    `min_supported_frames` frames are supported, and the correction is plausible; otherwise the
    priors are kept (`accepted` False, `reason` says why).
@@ -345,10 +345,12 @@ def calibrate_sequence(
     cal = _adjust(camera, wfs, raycaster, data, theta0, P, options)
     if options.time_delay_sigma_s > 0 and options.delay_search_s > 0:
         # the delay shows at turns only, often beyond the fine stage's search radius: searched on
-        # a grid at the adjusted parameters, then adjusted again from there when it moved
+        # a grid at the adjusted parameters, then adjusted again from there when it moved (not
+        # when no frame turns or moves enough to tell the delays apart: a flight's straight lines)
+        tau = delay_search(camera, wfs, raycaster, data, images, cal.theta, options.delay_search_s,
+                           options.delay_step_s, options.edges, fo)
         theta1 = cal.theta.copy()
-        theta1[9] = delay_search(camera, wfs, raycaster, data, images, cal.theta, options.delay_search_s,
-                                 options.delay_step_s, options.edges, fo)
+        theta1[9] = cal.theta[9] if tau is None else tau
         if abs(theta1[9] - cal.theta[9]) > options.delay_step_s:
             again = _adjust(camera, wfs, raycaster, data, theta1, P, options)
             if again.mean_support >= cal.mean_support:

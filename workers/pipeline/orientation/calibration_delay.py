@@ -47,10 +47,12 @@ def delay_search(
     camera: Camera, wireframe: FrameWireframes, raycaster: RayCaster, data: Sequence[DelayFrame],
     images: Mapping[int, np.ndarray], theta0: np.ndarray, search_s: float, step_s: float,
     edge_options: EdgeOptions, fit: FrameFitOptions,
-) -> float:
+) -> float | None:
     """Time delay τ (s) maximising the oriented-gradient score (`oriented_gradient`) of the
-    scene wireframe over the frames, the other parameters at `theta0`; 0 when no frame turns or
-    moves enough for τ to matter. Candidates: ±`search_s` in steps of `step_s` (seconds)."""
+    scene wireframe over the frames, the other parameters at `theta0`; None when no frame turns
+    or moves enough for τ to matter (a step of `step_s` moves its samples less than half a
+    pixel: the search cannot tell the delays apart). Candidates: ±`search_s` in steps of
+    `step_s` (seconds)."""
     taus = np.arange(-search_s, search_s + 1e-12, step_s)
     total = np.zeros(len(taus))
     used = 0
@@ -77,5 +79,5 @@ def delay_search(
         total += oriented_gradient_score(grad, 2, camera.project(xc), nrm, vis.weight[ok])
         used += 1
     if used == 0:
-        return 0.0
+        return None
     return float(taus[int(np.argmax(total))])
