@@ -65,6 +65,26 @@ def test_line_profiles_remove_a_pipe_but_not_a_leak():
     assert np.abs(residual[:, 20]).max() < 0.05 and residual[40, 40] == pytest.approx(3.0, abs=0.05)
 
 
+def test_short_rows_lose_a_slab_line_but_keep_a_leak():
+    """A wall 1.9 m wide (halves of 0.9-1 m: under `line_min_m`, no ordinary row profile) with a
+    slab line (σ 0.15 m, 1.2 K) and a leak (σ 0.4 m, 3 K) lower down. The narrow part of the
+    short rows' profiles (`narrow_m` 0.3 m) takes the slab out of the residual and leaves most
+    of the leak (its top over its value 0.3 m away, 0.45 K here, goes with the rows' profiles;
+    the amplitude is fitted on `analysis.fit_residual`, without them); without it (`narrow_m`
+    0) the slab stays whole."""
+    H, W = 60, 19
+    y, x = np.mgrid[0:H, 0:W] + 0.5
+    slab = 1.2 * np.exp(-0.5 * ((y - 15) / 1.5) ** 2)
+    leak = 3.0 * np.exp(-((x - 9.5) ** 2 + (y - 42) ** 2) / (2 * 4.0**2))
+    excess = (slab + leak).astype(np.float32)
+    usable = np.ones((H, W), bool)
+    _, row, residual = lines.line_profiles(excess, usable, 0.1, 1.0, narrow_m=0.3)
+    assert row[14] > 0.9 and np.abs(residual[10:21]).max() < 0.25
+    assert residual[42, 9] > 0.8 * 3.0 and np.abs(residual[:5]).max() < 0.05
+    _, row0, residual0 = lines.line_profiles(excess, usable, 0.1, 1.0)
+    assert row0.max() <= 0 and residual0[14:16].min() > 1.1
+
+
 def test_lattice_accepts_missing_windows_and_refuses_irregular_ones():
     assert windows._on_lattice(np.array([10.0, 40, 100, 130]), 3)  # one window of five missing
     assert not windows._on_lattice(np.array([0.0, 10, 23, 37]), 3)  # spacings 10, 13, 14

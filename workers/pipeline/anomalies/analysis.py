@@ -116,7 +116,9 @@ def analyse_surface(
     t1 = float(np.median(value[keep]))
     # 2. linear bridges along the texel axes (row/column profiles) leave the residual excess;
     # typical and spread from the texels whose residual is calm (no window, no candidate)
-    col, row, residual = line_profiles(np.where(observed, value - t1, np.nan), keep, size, o.line_min_m)
+    col, row, residual = line_profiles(
+        np.where(observed, value - t1, np.nan), keep, size, o.line_min_m, o.line_narrow_m
+    )
     m1, s1 = robust_stats(residual[keep][::3])  # only to tell calm texels
     calm = keep & (np.abs(residual - m1) <= max(o.k_mad * s1, o.floor_k))
     if calm.sum() < o.min_observed_texels:

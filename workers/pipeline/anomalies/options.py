@@ -65,6 +65,10 @@ class AnomalyOptions:
             half-maximum disk is 0.6 m wide by the same measure).
         line_min_m: a row/column profile (linear bridges along the texel axes) needs this much
             observed length in each half of the row/column.
+        line_narrow_m: a shorter row/column (at least 3 texels in each half: the rows of a
+            narrow wall) gets only the part of its profile that stands above the profile within
+            this distance on either side (a slab line or pipe, σ ≤ 0.15 m; not a leak, σ ≥ 0.3 m;
+            `lines.narrow_part`); 0: none (before session 10).
         psf_sigma_px: σ of the camera's optical blur, pixels. With the pixel's area and the
             bilinear resampling it gives the blur of one observation on the surface
             (`analysis.imaging_blur_m`: local resolution × sqrt(psf² + 1/4), foreshortened
@@ -108,6 +112,7 @@ class AnomalyOptions:
     bridge_min_length_m: float = 1.0
     line_width_m: float = 0.35
     line_min_m: float = 1.0
+    line_narrow_m: float = 0.3
     smooth_m: float = 0.07
     facade_grouping: bool = False
     facade_plane_m: float = 0.05
@@ -135,6 +140,7 @@ class AnomalyOptions:
             "window_margin_m",
             "edge_band_m",
             "line_min_m",
+            "line_narrow_m",
             "line_width_m",
         )
         non_negative += ("smooth_m", "psf_sigma_px", "outline_band_m", "facade_plane_m", "facade_angle_deg")
