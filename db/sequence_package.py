@@ -17,6 +17,7 @@ Every refusal raises `PackageError` (a `ValueError`) with `.field` naming the fi
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import tempfile
@@ -103,13 +104,25 @@ def read_frame_raw(path: Path, name: str | None = None) -> np.ndarray:
 
 
 def physical_from_raw(arr: np.ndarray, radiometry: Radiometry) -> np.ndarray:
-    """Stored frame values -> float32 physical values `(H, W)` (see module doc)."""
+    """Stored frame values -> float32 physical values `(H, W)`, a fresh array (see module doc).
+    16-bit DNs convert by one gather from `dn_table` (bit for bit `Radiometry.physical`)."""
     if arr.dtype == np.uint8:
         return arr.astype(np.float32)
-    out = radiometry.physical(arr)
     if arr.dtype == np.uint16:
-        out[arr == 0] = np.nan
-    return out
+        return np.take(dn_table(radiometry), arr)
+    return radiometry.physical(arr)
+
+
+@functools.lru_cache(maxsize=16)
+def dn_table(radiometry: Radiometry) -> np.ndarray:
+    """`(65536,)` float32 physical value of every 16-bit DN (`Radiometry.physical`, elementwise, so
+    a gather from it equals converting the frame), NaN at DN 0 (not observed); read-only, one per
+    radiometry and process. A gather costs half of the conversion and a third of it against a
+    float32 copy held in the frame cache (640 x 512: 0.8 ms against 1.7 ms)."""
+    table = radiometry.physical(np.arange(65536, dtype=np.uint16))
+    table[0] = np.nan
+    table.flags.writeable = False
+    return table
 
 
 #: bytes of decoded frames kept per process (`PackageFrames.raw`)
@@ -181,29 +194,11 @@ class PackageFrames:
 
     def load(self, index: int) -> np.ndarray:
         """Frame `index` as float32 physical values (radiometry applied), shape `(H, W)`; a fresh
-        array. The converted frame is kept in the same per-process cache as the decoded one (the
-        units of a flight convert the same frames dozens of times; a copy is cheaper)."""
-        raw = self.raw(index)
-        file_key = self._cache_key(index)
-        key = (*file_key, "physical", self.radiometry) if file_key is not None else None
-        if key is not None and (hit := _FRAMES.get(key)) is not None:
-            _FRAMES.move_to_end(key)
-            return hit.copy()
-        out = physical_from_raw(raw, self.radiometry)
-        if key is not None:
-            kept = out.copy()
-            kept.flags.writeable = False
-            _remember(key, kept)
-        return out
-
-    def _cache_key(self, index: int) -> tuple[str, int, int] | None:
-        """The frame file's cache key (path, size, modification time); None when it cannot be read."""
-        path = Path(self.root) / self.files[index]
-        try:
-            st = path.stat()
-        except OSError:
-            return None
-        return (str(path), st.st_size, st.st_mtime_ns)
+        array, converted from the decoded frame of the per-process cache (`raw`). Only the decoded
+        frames are kept (16-bit: 0.6 MB at 640 x 512, a third of the decoded and converted pair
+        the cache held before): the 256 MiB hold a 300-frame drive whole, so each process decodes
+        a frame once, and converting (`physical_from_raw`) costs less than a fifth of decoding."""
+        return physical_from_raw(self.raw(index), self.radiometry)
 
 
 # -- package -------------------------------------------------------------------------------------

@@ -163,6 +163,45 @@ def test_frames_left_at_uncertain_priors_do_not_texture_the_building(sigma_m, si
         assert wall.texels_observed == 0 and "withheld" in wall.reason
 
 
+class _CountingFrames:
+    """A `FrameSource` over `MemoryFrames` that counts the loads of each frame (fresh copies)."""
+
+    def __init__(self, frames: dict[int, np.ndarray]) -> None:
+        self.frames = MemoryFrames(frames)
+        self.loads: dict[int, int] = {}
+
+    def load(self, index: int) -> np.ndarray:
+        self.loads[index] = self.loads.get(index, 0) + 1
+        return self.frames.load(index).copy()
+
+
+def _load_all_keep_priors(camera, building, raycaster, frames, frame_source, prior, accuracy, **kw):
+    """`_keep_priors` after loading every frame, as `orientation.building.refine_building` does."""
+    for f in frames:
+        frame_source.load(f)
+    return _keep_priors(camera, building, raycaster, frames, frame_source, prior, accuracy, **kw)
+
+
+def test_a_refined_unit_loads_each_frame_once_and_textures_as_before() -> None:
+    """With refinement, a unit's frames are loaded once (`units.HeldFrames`): the refiner's loads
+    and the texturing read the same arrays, and the textures are those of a unit whose frames are
+    loaded anew for texturing."""
+    from workers.pipeline.geometry.manifest import Accuracy
+    from workers.pipeline.units import run_building_unit
+
+    buildings, poses, frames = _drive(n=4)
+    acc = Accuracy(np.full(3, 0.005), np.full(3, 0.005))
+    source = _CountingFrames(frames)
+    (unit,) = plan_units(buildings, CAM, poses, source, Radiometry(), accuracy=acc)
+    held = run_building_unit(unit, refiner=_load_all_keep_priors)
+    assert source.loads == dict.fromkeys(unit.frames, 1)
+    (plain,) = plan_units(buildings, CAM, poses, MemoryFrames(frames), Radiometry(), accuracy=acc)
+    again = run_building_unit(plain, refiner=_keep_priors)
+    assert [t.name for t in held.tiles] == [t.name for t in again.tiles] and held.tiles
+    for a, b in zip(held.tiles, again.tiles, strict=True):
+        np.testing.assert_array_equal(a.dn, b.dn)
+
+
 @pytest.mark.parametrize("coplanar_clean", [True, False])
 def test_pixels_of_a_coplanar_polygon_are_clean_only_when_asked(coplanar_clean: bool) -> None:
     """A wall split into two coplanar polygons at x = 4, seen head-on from 12 m (about 65 pixels

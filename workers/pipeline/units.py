@@ -356,6 +356,24 @@ def texture_unit(
                         resolutions=resolutions, reasons=reasons, rejected=rejected)  # fmt: skip
 
 
+class HeldFrames:
+    """A unit's `FrameSource` that loads each frame once from `source` and holds it for the
+    unit's run: the refinement loads all of the unit's frames and holds them anyway
+    (`orientation.building`), and texturing then reads the same arrays instead of loading
+    (converting, copying) every frame a second time. Callers must not write into the frames."""
+
+    def __init__(self, source: FrameSource) -> None:
+        self.source = source
+        self.frames: dict[int, np.ndarray] = {}
+
+    def load(self, index: int) -> np.ndarray:
+        """Frame `index` `(H, W)` float32 physical values, loaded on the first call."""
+        image = self.frames.get(index)
+        if image is None:
+            image = self.frames[index] = self.source.load(index)
+        return image
+
+
 def unit_raycaster(unit: BuildingUnit) -> RayCaster:
     """A ray caster over the unit's scene: its building and its occluders (world = model CRS)."""
     return RayCaster(build_scene_mesh([unit.building, *unit.occluders]))
@@ -364,7 +382,9 @@ def unit_raycaster(unit: BuildingUnit) -> RayCaster:
 def run_building_unit(unit: BuildingUnit, refiner: Refiner = refine_building) -> BuildingResult:
     """Run one building unit: refine its poses (unless `options.refine` is None), extract and
     fuse the textures of its surfaces, pack them into atlas tiles. Pure: reads frames through
-    `unit.frame_source`, writes nothing."""
+    `unit.frame_source` (with refinement each frame once, `HeldFrames`), writes nothing."""
+    if unit.options.refine is not None:
+        unit = replace(unit, frame_source=HeldFrames(unit.frame_source))
     t0 = time.perf_counter()
     raycaster = unit_raycaster(unit)
     t_scene = time.perf_counter() - t0
