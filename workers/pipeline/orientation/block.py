@@ -50,7 +50,7 @@ from workers.pipeline.orientation.edge_observations import edge_support, frame_e
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.priors import PriorOptions, frame_noise_covariance
-from workers.pipeline.orientation.tracks import TrackOptions, Tracks, track_sequence
+from workers.pipeline.orientation.tracks import TrackerFrames, TrackOptions, Tracks, track_sequence
 from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 from workers.pipeline.results import RefinedPose
 
@@ -163,8 +163,9 @@ def adjust_block(
     frame_info = dict.fromkeys(frames, white)
     common_info = _floored(prior_info, options)
     poses = dict(start)
+    prepared = TrackerFrames(frames, images, options.tracks)  # made once, for both trackings
     for _ in range(2):
-        tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks)
+        tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks, prepared)
         res = bundle_adjust(
             camera,
             frames,
