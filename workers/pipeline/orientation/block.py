@@ -46,11 +46,11 @@ from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import pose_delta, project_jacobian
 from workers.pipeline.geometry.raycast import RayCaster
 from workers.pipeline.orientation.bundle import BundleOptions, BundleResult, bundle_adjust
-from workers.pipeline.orientation.edge_observations import edge_support, frame_edges
+from workers.pipeline.orientation.edge_observations import FrameWireframes, edge_support, frame_edges
 from workers.pipeline.orientation.features import FeatureOptions
 from workers.pipeline.orientation.fit_options import FrameFitOptions
 from workers.pipeline.orientation.priors import PriorOptions, frame_noise_covariance
-from workers.pipeline.orientation.tracks import TrackOptions, Tracks, track_sequence
+from workers.pipeline.orientation.tracks import TrackerFrames, TrackOptions, Tracks, track_sequence
 from workers.pipeline.orientation.wireframe import EdgeOptions, Wireframe
 from workers.pipeline.results import RefinedPose
 
@@ -163,8 +163,11 @@ def adjust_block(
     frame_info = dict.fromkeys(frames, white)
     common_info = _floored(prior_info, options)
     poses = dict(start)
-    for _ in range(2):
-        tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks)
+    # made once for both passes: the tracker's inputs, the frames' parts of the wireframe
+    prepared = TrackerFrames(frames, images, options.tracks)
+    frame_wf = FrameWireframes(scene_wf, camera)
+    for k in range(2):
+        tracks = track_sequence(camera, frames, images, poses, raycaster, options.tracks, prepared)
         res = bundle_adjust(
             camera,
             frames,
@@ -174,13 +177,14 @@ def adjust_block(
             frame_info,
             common_info,
             tracks,
-            scene_wf,
+            frame_wf,
             raycaster,
             options.bundle,
             fit_options,
             edge_options,
             feature_options,
             prior_options,
+            options.retrack_sigma0 if k == 0 else float("inf"),  # a first pass tracked again: no figures
         )
         poses = res.poses
         if res.sigma0 <= options.retrack_sigma0:

@@ -107,13 +107,14 @@ def bundle_adjust(
     frame_info: Mapping[int, np.ndarray],
     common_info: np.ndarray | None,
     tracks: Tracks,
-    wireframe: Wireframe | None,
+    wireframe: Wireframe | FrameWireframes | None,
     raycaster: RayCaster,
     options: BundleOptions = BundleOptions(),
     fit_options: FrameFitOptions = FrameFitOptions(),
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
     prior_options: PriorOptions = PriorOptions(),
+    figures_below_sigma0: float = float("inf"),
 ) -> BundleResult:
     """Adjust the poses of `frames` from `start` (see the module docstring).
 
@@ -128,22 +129,27 @@ def bundle_adjust(
         common_info: `(6, 6)` information of the zero prior of the common error; None: no
             common error (each frame's prior is independent).
         tracks: tie-point tracks on the model's surfaces (observations of other frames ignored).
-        wireframe: model edges to observe (None: no edge observations).
+        wireframe: model edges to observe (None: no edge observations), or its parts per frame
+            (`FrameWireframes`, kept by the caller for another adjustment of the same frames).
         raycaster: the scene (hidden-edge removal).
         options, fit_options, edge_options, feature_options: parameters.
         prior_options: the null shift of the final edge support (`null_support`).
+        figures_below_sigma0: the final edge figures (`edge_rms_px`, `edge_support`,
+            `null_support`, `matched_edges`) are left empty when the ties' σ0 exceeds this
+            (`block.adjust_block`: that block is tracked and adjusted again, this result is not kept).
     """
     with single_threaded_blas():  # small dense algebra: OpenBLAS threads only spin (bundle_system)
         return _adjust(camera, frames, images, start, prior, frame_info, common_info, tracks, wireframe,
-                       raycaster, options, fit_options, edge_options, feature_options, prior_options)
+                       raycaster, options, fit_options, edge_options, feature_options, prior_options,
+                       figures_below_sigma0)
 
 
 def _adjust(
     camera: Camera, frames: Sequence[int], images: Mapping[int, np.ndarray], start: Mapping[int, Pose],
     prior: Mapping[int, Pose], frame_info: Mapping[int, np.ndarray], common_info: np.ndarray | None,
-    tracks: Tracks, wireframe: Wireframe | None, raycaster: RayCaster, options: BundleOptions,
-    fit_options: FrameFitOptions, edge_options: EdgeOptions, feature_options: FeatureOptions,
-    prior_options: PriorOptions,
+    tracks: Tracks, wireframe: Wireframe | FrameWireframes | None, raycaster: RayCaster,
+    options: BundleOptions, fit_options: FrameFitOptions, edge_options: EdgeOptions,
+    feature_options: FeatureOptions, prior_options: PriorOptions, figures_below_sigma0: float,
 ) -> BundleResult:
     """`bundle_adjust`."""
     frames = list(frames)
@@ -197,7 +203,8 @@ def _adjust(
             inl = np.linalg.norm(r, axis=1) <= options.outlier_px
     # figures at the final poses
     inl, ties, tie_rms, sigma0 = _tie_figures(camera, poses, frames, slot, f_obs, t_obs, uv_obs, X, options)
-    edge_rms, support, null, matched = _edge_figures(camera, wf, raycaster, edges, poses,  # type: ignore[arg-type]
+    seen = edges if sigma0 <= figures_below_sigma0 else {}
+    edge_rms, support, null, matched = _edge_figures(camera, wf, raycaster, seen, poses,  # type: ignore[arg-type]
                                                      edge_options, fit_options, prior_options.null_shift_px,
                                                      options.visibility_reuse_px)
     cov, factored = _covariances(S, frames, slot, sigma0)

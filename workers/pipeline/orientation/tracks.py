@@ -39,8 +39,9 @@ import numpy as np
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.track_frames import TrackerFrames, in_free_cells, texture_strength
 
-__all__ = ["TrackOptions", "Tracks", "plane_affine", "texture_strength", "track_sequence"]
+__all__ = ["TrackOptions", "TrackerFrames", "Tracks", "plane_affine", "texture_strength", "track_sequence"]
 
 
 @dataclass(frozen=True)
@@ -149,21 +150,6 @@ class Tracks:
         return np.bincount(self.track, minlength=self.n_tracks)
 
 
-def texture_strength(image: np.ndarray, window_sigma: float) -> np.ndarray:
-    """Smaller eigenvalue `(H, W)` float32 of the structure tensor of `image` `(H, W)` (central
-    differences in the image's units per pixel, Gaussian window `window_sigma` px, weights summing
-    to 1): the texture a translation-only tracker can lock onto in its weakest direction."""
-    img = np.asarray(image, dtype=np.float32)
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
-    k = max(3, 2 * round(2.5 * window_sigma) + 1)
-    sxx = cv2.GaussianBlur(gx * gx, (k, k), window_sigma)
-    syy = cv2.GaussianBlur(gy * gy, (k, k), window_sigma)
-    sxy = cv2.GaussianBlur(gx * gy, (k, k), window_sigma)
-    half = 0.5 * (sxx + syy)
-    return half - np.sqrt(np.maximum(half * half - (sxx * syy - sxy * sxy), 0.0))
-
-
 def _ray_points(camera: Camera, raycaster: RayCaster, pose: Pose, uv: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays of pixels `uv` `(N, 2)` from `pose` on the model -> (points `(N, 3)`, polygon `(N,)`
@@ -248,22 +234,6 @@ def _templates(image: np.ndarray, uv: np.ndarray, options: TrackOptions) -> np.n
     return T - (T * w).sum(axis=1, keepdims=True)
 
 
-def _highpass(image: np.ndarray, sigma: float) -> np.ndarray:
-    """`image − blur(image)` `(H, W)` float32; the Gaussian blur of σ `sigma` px is taken at a
-    resolution reduced to about σ / 4 per pixel (a wide kernel at full resolution is slow)."""
-    img = np.asarray(image, dtype=np.float32)
-    H, W = img.shape
-    f = max(1, int(sigma // 4))
-    small = cv2.resize(img, (max(W // f, 1), max(H // f, 1)), interpolation=cv2.INTER_AREA)
-    blur = cv2.resize(cv2.GaussianBlur(small, (0, 0), sigma / f), (W, H), interpolation=cv2.INTER_LINEAR)
-    return img - blur
-
-
-def _highpass8(image: np.ndarray, sigma: float, gain: float) -> np.ndarray:
-    """8-bit copy `(H, W)` uint8 of `image`: `128 + gain · (image − blur(image))`, clipped."""
-    return np.clip(128.0 + gain * _highpass(image, sigma), 0, 255).astype(np.uint8)
-
-
 def _fine(T: np.ndarray, stack: np.ndarray, uv0: np.ndarray, A: np.ndarray,
           options: TrackOptions) -> tuple[np.ndarray, np.ndarray]:
     """Lucas-Kanade of the translation of zero-mean templates `T` `(N, K)` (`_templates`), mapped
@@ -297,33 +267,6 @@ def _fine(T: np.ndarray, stack: np.ndarray, uv0: np.ndarray, A: np.ndarray,
     val -= (val * w).sum(axis=1, keepdims=True)
     ncc = (w * val * T).sum(1) / np.sqrt(np.maximum((w * val * val).sum(1) * (w * T * T).sum(1), 1e-30))
     return p, ncc
-
-
-def _detect(strength: np.ndarray, occupied: np.ndarray, options: TrackOptions, n_max: int) -> np.ndarray:
-    """Candidate pixels `(K, 2)` (u, v), strongest first: local maxima of `strength` `(H, W)`
-    above the texture floor, at most one per free cell (`occupied` `(rows, cols)` bool)."""
-    if n_max <= 0:
-        return np.zeros((0, 2))
-    floor = float(np.median(strength[::4, ::4])) * options.min_texture_ratio
-    r = options.nms_radius_px
-    peak = strength >= cv2.dilate(strength, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-    b = options.border_px
-    H, W = strength.shape
-    peak[:b] = False
-    peak[H - b:] = False
-    peak[:, :b] = False
-    peak[:, W - b:] = False
-    v, u = np.nonzero(peak & (strength > floor))
-    if len(v) == 0:
-        return np.zeros((0, 2))
-    order = np.argsort(-strength[v, u])
-    v, u = v[order], u[order]
-    cell = (v // options.cell_px) * occupied.shape[1] + (u // options.cell_px)
-    free = ~occupied.ravel()[cell]
-    v, u, cell = v[free], u[free], cell[free]
-    _, first = np.unique(cell, return_index=True)
-    first = np.sort(first)[:n_max]
-    return np.stack([u[first], v[first]], axis=1).astype(np.float64)
 
 
 @dataclass(eq=False)
@@ -369,6 +312,7 @@ def track_sequence(
     poses: Mapping[int, Pose],
     raycaster: RayCaster,
     options: TrackOptions = TrackOptions(),
+    prepared: TrackerFrames | None = None,
 ) -> Tracks:
     """Tracks through `frames` (recording order) on the model's surfaces (module docstring).
 
@@ -381,6 +325,9 @@ def track_sequence(
             2^`lk_levels` / 2 px), the model planes found by the rays.
         raycaster: the model the points lie on.
         options: parameters.
+        prepared: the frames' high-pass copies and texture peaks (`TrackerFrames` of these
+            `frames`, `images` and `options`), kept from an earlier tracking of the block; None:
+            made here.
     """
     frames = list(frames)
     H, W = camera.height, camera.width
@@ -390,18 +337,14 @@ def track_sequence(
     obs_uv: list[np.ndarray] = []
     pts: list[np.ndarray] = []
     nrms: list[np.ndarray] = []
-    # one gain for the high-pass copies (translation-invariant tracking input)
-    gain = 0.0
-    if frames:
-        img0 = np.asarray(images[frames[len(frames) // 2]], dtype=np.float32)
-        hp = _highpass(img0, options.highpass_sigma_px)
-        gain = 40.0 / max(float(np.percentile(np.abs(hp[::2, ::2]), 90)), 1e-6)
+    # one gain for the high-pass copies (translation-invariant tracking input), set by `prepared`
+    prep = prepared if prepared is not None else TrackerFrames(frames, images, options)
     act = _Active.empty(options)
     prev8 = None
     prev = None
     for f in frames:
-        img = np.asarray(images[f], dtype=np.float32)
-        img8 = _highpass8(img, options.highpass_sigma_px, gain)
+        img = prep.image(f)
+        img8 = prep.highpass8(f)
         if len(act.ids) and prev is not None and prev8 is not None:
             new_uv = _follow(camera, act, poses[prev], poses[f], prev8, img8, img, options)
             _drop_essential_outliers(camera, act.last_uv, new_uv, options)
@@ -414,7 +357,7 @@ def track_sequence(
             act.n_obs = act.n_obs + 1
             act = act.select(cont & (act.n_obs < options.max_length))
         # new tracks in free cells
-        cand, X, nrm = _new_points(camera, raycaster, poses[f], img, act, (rows, cols), options)
+        cand, X, nrm = _new_points(camera, raycaster, poses[f], prep.peaks(f), act, (rows, cols), options)
         if len(cand):
             ids = np.arange(len(pts), len(pts) + len(cand))
             pts.extend(X)
@@ -483,18 +426,18 @@ def _drop_essential_outliers(camera: Camera, last_uv: np.ndarray, new_uv: np.nda
             new_uv[np.flatnonzero(m)[inl.ravel() == 0]] = np.nan
 
 
-def _new_points(camera: Camera, raycaster: RayCaster, pose: Pose, img: np.ndarray, act: _Active,
+def _new_points(camera: Camera, raycaster: RayCaster, pose: Pose, peaks: np.ndarray, act: _Active,
                 grid: tuple[int, int], options: TrackOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """New tracks for the frame: textured points (`_detect`) in the cells of `grid` (rows, cols)
-    no active track occupies, kept where they lie on one model polygon (`_on_surface`) -> image
-    points `(K, 2)`, their model points `(K, 3)` and plane normals `(K, 3)`."""
+    """New tracks for the frame: its texture peaks `peaks` `(K, 2)` (`TrackerFrames.peaks`) in the
+    cells of `grid` (rows, cols) no active track occupies (`in_free_cells`), kept where they lie on
+    one model polygon (`_on_surface`) -> image points `(K, 2)`, their model points `(K, 3)` and
+    plane normals `(K, 3)`."""
     rows, cols = grid
     occupied = np.zeros((rows, cols), bool)
     if len(act.ids):
         c = np.clip((act.last_uv // options.cell_px).astype(int), 0, [cols - 1, rows - 1])
         occupied[c[:, 1], c[:, 0]] = True
-    cand = _detect(texture_strength(img, options.window_sigma_px), occupied, options,
-                   options.max_tracks - len(act.ids))
+    cand = in_free_cells(peaks, occupied, options.cell_px, options.max_tracks - len(act.ids))
     X = nrm = np.zeros((0, 3))
     if len(cand):
         ok, X, _, nrm = _on_surface(camera, raycaster, pose, cand, options)
