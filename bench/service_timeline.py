@@ -8,8 +8,9 @@ the worker process over the task (`time.process_time`, all its threads). On a sh
 wall spans stretch with the other load, the CPU seconds much less: the estimate
 (`critical_path_cpu`) schedules the measured CPU seconds of the job's tasks on n idle workers as
 the service runs them (prepare's own part serial, its windows over the workers, the units in the
-order they started, each to the first free worker, then finish) and gives the speed-up those
-CPU seconds allow.
+order they started, each to the first free worker, then finish; the frames decoded ahead by a
+`prefetch` task beside the prepare task on another worker, or after it on one) and gives the
+speed-up those CPU seconds allow.
 """
 
 from __future__ import annotations
@@ -20,9 +21,10 @@ from collections.abc import Iterable
 from typing import Any
 
 SHORT = {"citytherm.prepare_job": "prepare", "citytherm.orient_window": "window-task",
-         "citytherm.run_unit": "unit", "citytherm.finish_job": "finish"}  # fmt: skip
+         "citytherm.run_unit": "unit", "citytherm.finish_job": "finish",
+         "citytherm.prefetch_frames": "prefetch"}  # fmt: skip
 #: the characters of `draw` per kind of span
-MARK = {"prepare": "P", "window": "W", "unit": "U", "finish": "F", "window-task": "w"}
+MARK = {"prepare": "P", "window": "W", "unit": "U", "finish": "F", "window-task": "w", "prefetch": "d"}
 
 
 def spans(log: str) -> list[dict[str, Any]]:
@@ -90,18 +92,22 @@ def makespan(costs: Iterable[float], n: int) -> float:
 
 def critical_path_cpu(sp: list[dict[str, Any]], n: int) -> dict[str, float]:
     """The job's CPU seconds scheduled on `n` workers (module docstring): `serial` (prepare without
-    its windows, finish), `windows` and `units` (their makespans), `total`."""
+    its windows, finish), `windows` and `units` (their makespans), `prefetch` (frames decoded
+    ahead: on 1 worker all of it adds, on more only what outlasts the prepare's serial part),
+    `total`."""
     prepare = [s for s in sp if s["what"] == "prepare" and str(s["result"]).startswith("queued")]
     windows = [s for s in sp if s["what"] == "window"]
     inside = [w for w in windows for p in prepare if w["pid"] == p["pid"] and p["t0"] <= w["t0"] <= p["t1"]]
     own = sum(w["cpu_s"] for w in inside)
     serial = sum(p["cpu_s"] for p in prepare) - own
+    ahead = sum(s["cpu_s"] for s in sp if s["what"] == "prefetch")
+    ahead = ahead if n <= 1 else max(0.0, ahead - serial)
     serial += sum(s["cpu_s"] for s in sp if s["what"] == "finish")
     units = [s["cpu_s"] for s in sp if s["what"] == "unit" and s["result"] == "stored"]
     w = makespan(sorted((x["cpu_s"] for x in windows), reverse=True), n)
     u = makespan(units, n)
     return {"serial": round(serial, 2), "windows": round(w, 2), "units": round(u, 2),
-            "total": round(serial + w + u, 2)}  # fmt: skip
+            "prefetch": round(ahead, 2), "total": round(serial + w + u + ahead, 2)}  # fmt: skip
 
 
 def draw(sp: list[dict[str, Any]], step_s: float = 0.5) -> dict[str, str]:

@@ -5,7 +5,8 @@ In: ids (job uuid as a string, building gml id, model import id), the settings o
 (job and unit states, results through `db.store`), files under `jobs/<job id>/`, further tasks.
 
 - `prepare_job`: the stages of `citytherm run` before the units (`workers.job`: ingest over the
-  model's buildings from PostGIS, calibrate, orient with its windows as tasks
+  model's buildings from PostGIS, calibrate (queueing `citytherm.prefetch_frames` first: another
+  worker decodes the frames meanwhile, `workers.service_frames`), orient with its windows as tasks
   (`workers.service_windows`), plan; the plan rests on the calibrated priors alone, so when the
   task waits for windows other workers orient it plans then and gives each unit its part of
   the orientation afterwards, `with_sequence`: the same units); one pickled `BuildingUnit` per
@@ -198,6 +199,8 @@ def _run_stages(job: jobs.JobRecord) -> tuple[Prepared, tuple[Any, ...], dict[in
     caster = None
     if options.refine and options.calibrate:
         _stage(job.id, "calibrate")
+        if ingested.buildings:  # an idle worker decodes the frames meanwhile (`service_frames`)
+            send("citytherm.prefetch_frames", str(job.id))
         t0 = time.perf_counter()
         caster = scene_caster(ingested)
         calibrated = calibrate(ingested, options, caster)

@@ -1,5 +1,6 @@
 """The Celery tasks of the service (`docs/service.md`): thin wrappers, ids as arguments; the work
-is in `workers.service_job`, `workers.service_windows` and `workers.service_upkeep`.
+is in `workers.service_job`, `workers.service_windows`, `workers.service_frames` and
+`workers.service_upkeep`.
 
 Every task retries transient errors (`service_job.TRANSIENT`: database, broker, storage) with
 exponential backoff (jittered, at most 300 s apart), at most `Settings.task_max_retries` times
@@ -24,7 +25,7 @@ from typing import Any
 from celery import Task
 from celery.signals import task_postrun, task_prerun, worker_process_init
 
-from workers import service_job, service_upkeep, service_windows
+from workers import service_frames, service_job, service_upkeep, service_windows
 from workers.celery_app import app
 from workers.pool import cap_library_threads
 
@@ -106,6 +107,13 @@ def prepare_job(job_id: str) -> str:
 def orient_window(job_id: str, k: int) -> str:
     """Run window `k` of job `job_id`'s sequence orientation (its prepare task merges them)."""
     return service_windows.orient_window_task(job_id, int(k))
+
+
+@app.task(base=ServiceTask, name="citytherm.prefetch_frames")
+def prefetch_frames(job_id: str) -> str:
+    """Decode job `job_id`'s frames into this process's frame cache while its prepare task
+    calibrates (best effort, never retried)."""
+    return service_frames.prefetch_frames(job_id)
 
 
 @app.task(base=ServiceTask, bind=True, name="citytherm.run_unit")

@@ -2,7 +2,8 @@
 test PostGIS database and Redis db, a synthetic drive past the bundled Berlin model.
 
 A job submitted with `workers.submit.submit_job` runs to `successful` with the same rows and the
-same results folder as `citytherm run` (+ `results import`) on the same inputs; a worker killed
+same results folder as `citytherm run` (+ `results import`) on the same inputs, also with
+refinement (calibrated, its frames decoded ahead by the idle worker); a worker killed
 with SIGKILL in the middle of a unit costs nothing but time (the sweeper queues the unit again);
 a dismissed job gets nothing more written; a package with a missing frame fails its job with a
 message naming the file, without retries.
@@ -189,6 +190,13 @@ def test_a_submitted_job_gives_what_citytherm_run_gives(scene, reference, celery
     assert set(us) == set(BUILDINGS)
     assert all(u["status"] == "successful" and u["attempts"] == 1 for u in us.values()), us
     assert appearances(db_engine, job_id) == dict.fromkeys(BUILDINGS, 1)
+    assert_same_results(db_engine, job, run_out, run_job_id)
+
+
+def assert_same_results(db_engine: Any, job: dict[str, Any], run_out: Path, run_job_id: uuid.UUID) -> None:
+    """The job (its row) gave what `citytherm run` wrote to `run_out` and `results import`ed as
+    `run_job_id`."""
+    job_id = job["id"]
     # the same rows as `citytherm run --database` (appearances, texture coordinates, the 16-bit
     # tiles byte for byte, statistics, poses with their priors, anomalies, units)
     assert job_rows(db_engine, job_id) == job_rows(db_engine, run_job_id)
@@ -210,6 +218,34 @@ def test_a_submitted_job_gives_what_citytherm_run_gives(scene, reference, celery
         assert sorted(z.namelist()) == sorted(
             p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()
         )
+
+
+def test_a_calibrated_job_decodes_its_frames_ahead_and_gives_what_citytherm_run_gives(
+    scene, celery_workers, db_engine
+):
+    """With refinement the prepare task calibrates and queues `citytherm.prefetch_frames` first,
+    which the idle worker runs (`workers.service_frames`); the results stay those of `citytherm
+    run`."""
+    celery_workers.ensure()
+    options = RunOptions.build(resolution_px_per_m=10, refine=True, display=False, buildings=BUILDINGS)
+    assert options.calibrate
+    run_out = scene.folder / "run-out-calibrated"
+    run_job(BUNDLED_MODEL, scene.package, run_out, options)
+    run_job_id = import_results(db_engine, run_out, model=MODEL).job_id
+    job_id = submit(db_engine, scene, options)
+    job = finished(db_engine, job_id)
+    assert job["status"] == "successful", job
+    assert set(units(db_engine, job_id)) == set(BUILDINGS)
+    assert_same_results(db_engine, job, run_out, run_job_id)
+    logs = "".join(celery_workers.log(n) for n in celery_workers.names).splitlines()
+    spans = [json.loads(ln.split("task-span ", 1)[1]) for ln in logs if "task-span " in ln]
+    prefetch = [
+        sp["result"]
+        for sp in spans
+        if sp["task"] == "citytherm.prefetch_frames" and sp["args"] == [str(job_id)]
+    ]
+    # decoded while the job calibrated, or taken up after it (then nothing is done)
+    assert len(prefetch) == 1 and (prefetch[0].startswith("decoded ") or prefetch[0] == "late"), prefetch
 
 
 def _running_on(units_now: dict[str, dict[str, Any]]) -> tuple[str, str] | None:
