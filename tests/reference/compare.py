@@ -183,13 +183,14 @@ def run_reference(
     res = case.res
     polys = scene_polygons(res.buildings)
     poses = [(p.R_world_from_cam, p.center) for p in res.truth.poses]
+    o = options or reference_options(case.spec)
     tex = reference_textures(
         polys,
         None,
-        RefCamera.from_params(res.manifest.camera),
+        RefCamera.from_params(res.manifest.camera, supersample=o.supersample),
         poses,
         frame_loader(case),
-        options or reference_options(case.spec),
+        o,
         ground_z=float(res.truth.ground_z),
     )
     return polys, tex, time.perf_counter() - t0

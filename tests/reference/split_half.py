@@ -99,7 +99,7 @@ def run_reference_split_half(
     halves, frames = reference_half_textures(
         polys,
         wanted,
-        RefCamera.from_params(res.manifest.camera),
+        RefCamera.from_params(res.manifest.camera, supersample=o.supersample),
         [(p.R_world_from_cam, p.center) for p in res.truth.poses],
         frame_loader(case),
         o,

@@ -29,7 +29,9 @@ from tests.reference.split_half import (
 )
 from workers.pipeline.texture.split_half import SplitHalfOptions
 
-pytestmark = pytest.mark.slow
+#: a case's fixture synthesizes it, runs the product and the reference (its z-buffer at 6 samples
+#: per pixel side, twice on the drive: whole and split halves): over the default 600 s under load
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
 CASES = {
     "drive": CaseSpec("nrw", "drive", 34, seed=1, cluster=4),
@@ -91,17 +93,23 @@ def test_nothing_textured_that_no_frame_sees(figures: dict[str, Any]) -> None:
     assert figures["unseen_texels_delivered"]["texels"] == 0, _brief(figures)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 15 open: a few surfaces that the reference sees only through mixed pixels get "
-    "texels (walls at their foot, where the synthetic flat ground the product cannot know covers "
-    "part of the footprint; slivers whose footprint lies on a coplanar polygon of the same wall). "
-    "Drive: 4 walls, 11 texels, all beside a coplanar polygon of the same building; flight: 24, "
-    "of which 9 remain with VisibilityOptions(coplanar_clean=False), walls whose base lies below "
-    "the synthetic ground (that option costs the drive a surface the reference textures: 0.94x; "
-    "the 4 walls it then misses, 2-13 reference texels each, 3 missed with True as well, fail "
-    "only the pixel-corner rays of the outer ring: a background or coplanar polygon clips the "
-    "ring's outermost sixth of a pixel, which the reference's 3x3 area samples do not reach)",
+@pytest.mark.parametrize(
+    "figures",
+    [
+        "drive",
+        pytest.param(
+            "flight",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="issue 15 open: walls whose foot lies below the synthetic ground get texels "
+                "the reference finds mixed. The synthetic world's ground is one plane at the "
+                "cluster's median base height (the NRW terrain is hilly), so in the frames it cuts "
+                "across lower-standing walls above their foot, which the city model, and so the "
+                "product, cannot know; the reference renders that plane. 10 walls on this flight.",
+            ),
+        ),
+    ],
+    indirect=True,
 )
 def test_no_surface_textured_from_mixed_pixels_only(figures: dict[str, Any]) -> None:
     assert figures["hidden_surfaces_textured"]["count"] == 0, _brief(figures)

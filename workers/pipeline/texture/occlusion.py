@@ -4,8 +4,9 @@ In: a `RayCaster` over a unit's scene (its building and every building that can 
 mesh in a local frame, `SceneMesh.origin`), the camera, a frame's pose (world = model CRS,
 metres), and per surface the pixel positions `uv (N, 2)` of its texel samples (pixel centres at
 integers), their distances to the projection centre `(N,)` (metres) and their plane group.
-Out: per surface `(N,)` bool: the pixels bilinear sampling reads, grown by the blur margin, see
-the texel's own plane at the texel's distance (`OcclusionScene.visible`).
+Out: per surface `(N,)` bool: the pixels bilinear sampling reads, grown by the blur margin (the
+PSF radius), see the texel's own plane at the texel's distance over their whole area, corners
+included (`OcclusionScene.visible`; the footprint as `VisibilityOptions.blur_margin_px` defines it).
 
 Cost: one coarse cast of every `buffer_step_px`-th pixel (only around the samples), then full
 resolution pixel rays and pixel-corner rays only near silhouettes. Every surface of the frame
