@@ -273,8 +273,8 @@ def refine_from_sequence(
 ) -> tuple[dict[int, RefinedPose], str]:
     """The building's frames after the sequence orientation (`sequence.orient_sequence`): each takes its
     sequence pose, checked against the BUILDING's own edges (`anchoring` of their edge support at
-    those poses, in the frames where any of them is matched: where they contradict the pose, the
-    frame keeps its prior) and accepted when the
+    those poses with the floor `confirm_min_mean_support`, in the frames where any of them is
+    matched: where they contradict the pose, the frame keeps its prior) and accepted when the
     pose's marginal covariance from the sequence, projected onto the building's vertices, is at
     most `max_sigma_px` (`"refined"`); else `"prior"`. The sequence adjustment already used every
     building's edges and the tie points: adjusting again with them would count them twice (and
