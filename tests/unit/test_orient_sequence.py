@@ -14,7 +14,7 @@ from tests.unit.orientation_scenes import perturb, reprojection_rms
 from workers.pipeline.geometry.manifest import Accuracy, MemoryFrames
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.orientation.block import UnitSequence, refine_from_sequence
+from workers.pipeline.orientation.block import BlockOptions, UnitSequence, anchoring, refine_from_sequence
 from workers.pipeline.orientation.building import CoregisterOptions, refine_building
 from workers.pipeline.orientation.sequence import SequenceOrientationOptions, orient_sequence, windows
 from workers.pipeline.orientation.wireframe import building_wireframe
@@ -140,6 +140,27 @@ def test_units_reject_what_the_sequence_leaves_open_or_the_building_contradicts(
     got = refine_building(cam, b, caster, seen, MemoryFrames(images), {i: prior[i] for i in seen}, ACC,
                           CoregisterOptions(), times, wrong)
     assert not any(got[i].pose is off[i] for i in seen)
+
+
+def test_a_unit_confirms_by_support_above_null_with_its_own_lower_floor() -> None:
+    """The sequence acceptance looks for the model (mean support >= `min_mean_support`); a unit
+    only checks that its building's edges do not contradict the poses: support clearly above the
+    null support, with the lower floor `confirm_min_mean_support`."""
+    o = BlockOptions(anchor_frames=2, min_mean_support=0.3, min_support_gain=0.15,
+                     confirm_min_mean_support=0.1)
+    frames = list(range(6))
+    # a building leaving the view: support 0.25 against a null support of 0.01
+    leaving = dict.fromkeys(frames, 0.25), dict.fromkeys(frames, 0.01)
+    assert not any(anchoring(frames, *leaving, o).values())
+    assert all(anchoring(frames, *leaving, o, o.confirm_min_mean_support).values())
+    # clutter: as much support off the edges as on them contradicts the poses at either floor
+    clutter = dict.fromkeys(frames, 0.5), dict.fromkeys(frames, 0.42)
+    assert not any(anchoring(frames, *clutter, o, o.confirm_min_mean_support).values())
+    # below the floor, whatever the null support
+    faint = dict.fromkeys(frames, 0.08), dict.fromkeys(frames, -0.1)
+    assert not any(anchoring(frames, *faint, o, o.confirm_min_mean_support).values())
+    # no frame sees the building's edges: undecided
+    assert set(anchoring(frames, {}, {}, o, o.confirm_min_mean_support).values()) == {None}
 
 
 def test_each_frame_keeps_the_ties_of_the_window_that_oriented_it(oriented) -> None:
