@@ -11,7 +11,7 @@ from workers.pipeline.geometry.georef import prior_poses
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.reconstruction.colmap import triangulate
 from workers.pipeline.reconstruction.image_tracks import image_tracks
-from workers.pipeline.reconstruction.multiview import multiview_block
+from workers.pipeline.reconstruction.multiview import MultiViewOptions, multiview_block
 from workers.pipeline.reconstruction.options import ReconstructionOptions
 from workers.pipeline.synth import BUNDLED_MODEL, SynthOptions, synthesize
 from workers.pipeline.synth.trajectory import DriveOptions
@@ -79,3 +79,13 @@ def test_multiview_block_makes_the_relative_orientations_consistent(drive: tuple
     common0 = np.mean([p.center - t.center for p, t in zip(priors, truth, strict=True)], axis=0)
     common1 = np.mean([p.center - t.center for p, t in zip(blk.poses, truth, strict=True)], axis=0)
     assert np.linalg.norm(common1 - common0) < 0.3
+
+
+def test_a_block_that_moves_off_its_priors_comes_back_as_the_priors(drive: tuple) -> None:
+    """The ties cannot place the block: one whose frames moved on average beyond the limit (here
+    0: any move) is refused, and the priors themselves come back."""
+    res, images, priors = drive
+    opts = MultiViewOptions(max_common_shift_m=0.0)
+    blk = multiview_block(images.__getitem__, res.manifest.camera, priors, opts)
+    assert not blk.accepted and "moved" in blk.reason and blk.tied == ()
+    assert all(p is q for p, q in zip(blk.poses, priors, strict=True))
