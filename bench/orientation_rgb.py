@@ -8,20 +8,23 @@ errors, not the boresight), the RGB poses are the package's `rgb_camera` poses (
 with ground control: 1 cm / 0.005° per frame). Prints JSON:
 
 - `clouds`: points per cloud, stereo pairs, TIR pairs oriented from the images;
+- `multiview`: the TIR frames' multi-view block (`multiview.multiview_block`: tracks, tie RMS,
+  frames tied; off with `--no-multiview`: the pairs' two-view orientations from the priors);
 - `distance`: mean / median TIR-RGB cloud distance (point to the RGB cloud's local plane, every
   TIR point of the dense cloud, none dropped for the figure) before, after the block's rigid ICP
   (`rigid_mean_distance_after_m`) and after the per-frame registration (`mean_distance_after_m`),
   and the mean over the overlap (distances < 1 m) (paper: 1.82 m -> 0.11 m; bar: mean after
   <= 0.10 m), ICP fitness and inlier RMSE, the transform;
-- `tir_pose_error`: before / after the rigid ICP / after (per frame), position error (mean,
-  median, metres), rotation error
-  (median, degrees), share of frames whose reprojection error is below 1 px (RMS over the true
-  view's surface points on a 16 x 13 pixel grid);
+- `tir_pose_error`: before / after the multi-view block / after the rigid ICP / after (per
+  frame), position error (mean, median, metres), rotation error (median, degrees), share of
+  frames whose reprojection error is below 1 px (RMS over the true view's surface points on a
+  16 x 13 pixel grid);
 - `cpu_s` / `wall_s` per step and the machine's load average.
 
 Usage: `python bench/orientation_rgb.py [--frames 48] [--buildings 3] [--seed 1] [--interval 0.25]
-[--look-up 10] [--per-frame] [--prior-direction] [--degeneracy-ratio R]` (a frame every 2 m: the
-drive passes several facade directions; the flags switch on the options of the same names).
+[--look-up 10] [--per-frame] [--no-multiview] [--prior-direction] [--degeneracy-ratio R]` (a frame
+every 2 m: the drive passes several facade directions; the flags switch on the options of the
+same names).
 """
 
 from __future__ import annotations
@@ -46,10 +49,10 @@ from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.reconstruction.dense_stereo import dense_cloud
 from workers.pipeline.reconstruction.rgb_method import (
     RgbRegistrationOptions,
-    block_poses,
     corrected_poses,
     register_clouds_of_blocks,
     rgb_prior_poses,
+    tir_cloud,
 )
 from workers.pipeline.synth import BUNDLED_MODEL, RgbOptions, SynthOptions, SynthResult, synthesize
 from workers.pipeline.synth.trajectory import DriveOptions
@@ -107,6 +110,7 @@ def main() -> None:
     ap.add_argument("--interval", type=float, default=0.25, help="seconds between frames (8 m/s)")
     ap.add_argument("--per-frame", action="store_true", help="RgbRegistrationOptions.per_frame")
     ap.add_argument("--prior-direction", action="store_true", help="TIR DenseOptions.prior_direction")
+    ap.add_argument("--no-multiview", action="store_true", help="RgbRegistrationOptions.multiview = None")
     ap.add_argument("--degeneracy-ratio", type=float, default=None, help="IcpOptions.degeneracy_ratio")
     a = ap.parse_args()
     _, blds = read_model(BUNDLED_MODEL)
@@ -120,14 +124,17 @@ def main() -> None:
     (tir_imgs, c_tir_r, w_tir_r) = timed(lambda: [res.frames.load(i) for i in range(a.frames)])
     (rgb_imgs, c_rgb_r, w_rgb_r) = timed(lambda: [res.rgb.frames.load(i) for i in range(a.frames)])
     o = RgbRegistrationOptions(per_frame=a.per_frame)
+    if a.no_multiview:
+        o = replace(o, multiview=None)
     if a.prior_direction:
         o = replace(o, tir=replace(o.tir, prior_direction=True))
     if a.degeneracy_ratio is not None:
         o = replace(o, icp=replace(o.icp, degeneracy_ratio=a.degeneracy_ratio))
-    tir, c_tir, w_tir = timed(dense_cloud, tir_imgs.__getitem__, m.camera, tir_priors, o.tir)
+    tir, c_tir, w_tir = timed(tir_cloud, tir_imgs.__getitem__, m.camera, tir_priors, o)
     rgb, c_rgb, w_rgb = timed(dense_cloud, rgb_imgs.__getitem__, m.rgb.camera, rgb_poses, o.rgb)
-    placed = block_poses(tir_priors, o.tir)  # as `register_tir_on_rgb`: the poses the cloud was placed with
-    reg, c_icp, w_icp = timed(register_clouds_of_blocks, tir, rgb, placed, o)
+    placed = tir.placed  # as `register_tir_on_rgb`: the poses the cloud was placed with
+    reg, c_icp, w_icp = timed(register_clouds_of_blocks, tir.cloud, rgb, placed, o)
+    reg = replace(reg, block=tir.block)
     rigid = corrected_poses(placed, reg.world_from_tir_world)
     f = reg.figures()
     keys = ("fitness", "inlier_rmse_m", "translation_m", "rotation_deg", "accepted", "reason",
@@ -135,24 +142,26 @@ def main() -> None:
             "frame_rms_median_m")
     common = np.mean([p.center - t.center for p, t in zip(tir_priors, tr.poses, strict=True)], axis=0)
     out = {
-        "options": {"per_frame": a.per_frame, "prior_direction": a.prior_direction,
-                    "degeneracy_ratio": o.icp.degeneracy_ratio},
+        "options": {"per_frame": a.per_frame, "multiview": not a.no_multiview,
+                    "prior_direction": a.prior_direction, "degeneracy_ratio": o.icp.degeneracy_ratio},
         "scene": {"model": Path(BUNDLED_MODEL).name, "frames": a.frames, "buildings": list(tr.cluster),
                   "seed": a.seed, "look_up_deg": a.look_up, "interval_s": a.interval,
                   "tir": [m.camera.width, m.camera.height],
                   "rgb": [m.rgb.camera.width, m.rgb.camera.height]},
         "clouds": {k: f[k] for k in ("points_tir", "points_rgb", "pairs_tir", "pairs_rgb",
                                      "refined_pairs_tir")},
+        "multiview": f.get("multiview"),
         "distance": {k: v for k, v in f.items() if "distance" in k or "trimmed" in k or k in keys},
         "bar_mean_after_le_0_10_m": bool(f.get("mean_distance_after_m", np.inf) <= 0.10),
         "tir_pose_error": {"before": pose_errors(res, tir_priors),
+                           "block": pose_errors(res, list(tir.block.poses)) if tir.block else None,
                            "after_rigid": pose_errors(res, rigid),
                            "after": pose_errors(res, list(reg.poses))},
         "true_common_position_error_m": common.tolist(),
-        "cpu_s": {"render_tir": c_tir_r, "render_rgb": c_rgb_r, "dense_tir": c_tir, "dense_rgb": c_rgb,
-                  "icp": c_icp},
-        "wall_s": {"render_tir": w_tir_r, "render_rgb": w_rgb_r, "dense_tir": w_tir, "dense_rgb": w_rgb,
-                   "icp": w_icp},
+        "cpu_s": {"render_tir": c_tir_r, "render_rgb": c_rgb_r, "block_and_dense_tir": c_tir,
+                  "dense_rgb": c_rgb, "icp": c_icp},
+        "wall_s": {"render_tir": w_tir_r, "render_rgb": w_rgb_r, "block_and_dense_tir": w_tir,
+                   "dense_rgb": w_rgb, "icp": w_icp},
         "load_average": list(os.getloadavg()),
     }  # fmt: skip
     print(json.dumps(out, indent=1))

@@ -7,12 +7,14 @@ from (the calibrated priors, world = model CRS). Out: the poses the sequence ori
 from (the registered ones when the ICP was accepted, else the given ones) and the figures for
 `report.json` (`sequence_orientation.rgb`).
 
-The registration moves the whole TIR block by one rigid transform (`rgb_method.orient_with_rgb`:
-SGBM dense clouds of both blocks, robust point-to-plane ICP). It corrects the GNSS/INS offset
-common to the block, not the boresight or the delay (the calibrate stage's), nor the per-frame
-noise (the sequence orientation's): it runs between the two. On the bench drive
-(`bench/orientation_rgb.py`) it takes the TIR positions from 2.5 m to 0.19 m off; its CPU cost
-(about 2 minutes per 48 frames) is why it is an option.
+The registration adjusts the TIR frames as one block from their own images and the priors
+(`multiview`: consistent relative orientations for the stereo pairs), then moves the block by one
+rigid transform (`rgb_method.orient_with_rgb`: SGBM dense clouds of both blocks, robust
+point-to-plane ICP). It corrects the GNSS/INS offset common to the block, not the boresight or
+the delay (the calibrate stage's); the block removes part of the per-frame noise, the sequence
+orientation the rest: it runs between the two. On the bench drive (`bench/orientation_rgb.py`)
+it takes the TIR positions from 2.5 m to 0.13 m off (0.19 m without the block); its CPU cost
+(about 2-3 minutes per 48 frames) is why it is an option.
 """
 
 from __future__ import annotations

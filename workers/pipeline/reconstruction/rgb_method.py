@@ -8,9 +8,12 @@ Out: `RgbRegistration`: the corrected TIR poses, the block's rigid transform
 `world_from_tir_world` (the rigid ICP's `target_from_source`) and the figures (points per cloud,
 TIR-RGB cloud distances before / after, ICP fitness and inlier RMSE, per-frame figures).
 
-Steps: a dense cloud per block (`dense_stereo.dense_cloud`: SGBM on rectified consecutive pairs;
-for TIR the pairs' relative orientation comes from the images, as its per-frame GNSS/INS noise
-is far above what stereo tolerates; each pair's points triangulated in its first camera's frame),
+Steps: the TIR frames adjusted as one block (`multiview.multiview_block`: tracks from the images,
+the bundle adjustment with the GNSS/INS priors; `options.multiview`), then a dense cloud per block
+(`dense_stereo.dense_cloud`: SGBM on rectified consecutive pairs, each pair's points triangulated
+in its first camera's frame; for TIR with the block's poses, or, without the block or when it is
+refused, with each pair's relative orientation from its two images, as the per-frame GNSS/INS
+noise is far above what stereo tolerates),
 then `icp_register.register_clouds` (point-to-plane, Tukey kernel, coarse to fine from the
 priors' alignment: one rigid transform for the block, `R' = R_T · R_world_from_cam`,
 `C' = R_T · C + t_T`, applied to the poses the cloud was placed with), then, with `per_frame`,
@@ -48,12 +51,16 @@ from workers.pipeline.reconstruction.dense_stereo import (
 )
 from workers.pipeline.reconstruction.frame_icp import FrameIcpOptions, FrameIcpResult, register_frames
 from workers.pipeline.reconstruction.icp_register import IcpOptions, IcpResult, nn_distances, register_clouds
+from workers.pipeline.reconstruction.multiview import MultiViewBlock, MultiViewOptions, multiview_block
 
 #: TIR: weak, smooth texture and per-frame pose noise -> larger blocks, stricter filters,
 #: relative orientation of each pair from the images
 TIR_DENSE = DenseOptions(
     block_size=11, uniqueness_ratio=20, speckle_window=200, min_texture=4.0, smooth_positions=True
 )
+#: TIR after the multi-view block (`multiview`): the adjusted poses as they are (consistent
+#: relative orientations and baselines: neither the images' two-view orientation nor smoothing)
+TIR_BLOCK_DENSE = replace(TIR_DENSE, refine_relative=False, smooth_positions=False)
 #: RGB: rich texture and accurate poses -> the poses as they are (centres smoothed: the relative
 #: position of neighbours sets the stereo scale, 5 mm of noise on 1.5 m is 4 cm at 12 m)
 RGB_DENSE = DenseOptions(refine_relative=False, block_size=5, min_texture=2.0, smooth_positions=True)
@@ -63,7 +70,9 @@ RGB_DENSE = DenseOptions(refine_relative=False, block_size=5, min_texture=2.0, s
 class RgbRegistrationOptions:
     """Parameters of `register_tir_on_rgb`: the dense clouds of each block and the ICP."""
 
-    tir: DenseOptions = field(default_factory=lambda: TIR_DENSE)
+    tir: DenseOptions = field(default_factory=lambda: TIR_DENSE)  # without the block (or refused)
+    multiview: MultiViewOptions | None = field(default_factory=MultiViewOptions)  # None: no block
+    tir_block: DenseOptions = field(default_factory=lambda: TIR_BLOCK_DENSE)  # with the block
     rgb: DenseOptions = field(default_factory=lambda: RGB_DENSE)
     icp: IcpOptions = field(default_factory=IcpOptions)
     min_points: int = 500  # per cloud; fewer: no registration (poses unchanged)
@@ -104,6 +113,7 @@ class RgbRegistration:
     frame_icp: FrameIcpResult | None = None
     frame_reason: str = ""
     distances_after: tuple[float, float, float] | None = None
+    block: MultiViewBlock | None = None
 
     def figures(self) -> dict[str, Any]:
         """The figures as plain JSON values (for `report.json` and benches)."""
@@ -125,6 +135,8 @@ class RgbRegistration:
                 "trimmed_mean_after_m": i.trimmed_mean_after_m,
                 "observed_directions": i.observed_directions,
             }  # fmt: skip
+        if self.block is not None:
+            out["multiview"] = self.block.figures()
         out["per_frame"] = self.frame_icp is not None
         out["per_frame_reason"] = self.frame_reason
         if self.frame_icp is not None and self.distances_after is not None:
@@ -167,9 +179,35 @@ def register_tir_on_rgb(
     options: RgbRegistrationOptions = RgbRegistrationOptions(),
 ) -> RgbRegistration:
     """Method 3 (see the module docstring). Frames are taken in index order."""
-    tir = dense_cloud(tir_load, tir_camera, tir_poses, options.tir)
+    tir = tir_cloud(tir_load, tir_camera, tir_poses, options)
     rgb = dense_cloud(rgb_load, rgb_camera, rgb_poses, options.rgb)
-    return register_clouds_of_blocks(tir, rgb, block_poses(tir_poses, options.tir), options)
+    return replace(register_clouds_of_blocks(tir.cloud, rgb, tir.placed, options), block=tir.block)
+
+
+@dataclass(frozen=True, eq=False)
+class TirCloud:
+    """The TIR block's dense cloud (`cloud`), the poses it was placed with (`placed`: what the
+    ICP transform corrects), the dense options used and the multi-view block (None: not run)."""
+
+    cloud: DenseCloud
+    placed: list[Pose]
+    dense: DenseOptions
+    block: MultiViewBlock | None
+
+
+def tir_cloud(
+    load: Callable[[int], np.ndarray], camera: Camera, poses: Sequence[Pose], options: RgbRegistrationOptions
+) -> TirCloud:
+    """The TIR frames `load(i)` with their priors `poses` (world) as a dense cloud: with
+    `options.multiview`, the frames adjusted as one block first (`multiview.multiview_block`) and
+    the cloud made with the adjusted poses (`options.tir_block`); without it, or when the block
+    is refused, from the priors with the pairs' two-view orientations (`options.tir`)."""
+    block = None if options.multiview is None else multiview_block(load, camera, poses, options.multiview)
+    if block is not None and block.accepted:
+        start, dense = list(block.poses), options.tir_block
+    else:
+        start, dense = list(poses), options.tir
+    return TirCloud(dense_cloud(load, camera, start, dense), block_poses(start, dense), dense, block)
 
 
 def orient_with_rgb(
