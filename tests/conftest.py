@@ -35,13 +35,3 @@ def replicated_nrw(dst: Path, copies: int) -> Path:
     spec.loader.exec_module(mod)
     return mod.make_replicated_model(DATA / "nrw-tile-5659-citygml1-lod2.gml", dst, copies)
 
-
-def pytest_configure(config: object) -> None:
-    """A SIGTERM (what `timeout`, CI runners and systemd send) ends the run like Ctrl-C, so the
-    fixtures' teardown stops the workers, servers and private clusters the tests started."""
-    import signal
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    signal.signal(signal.SIGTERM, interrupt)
