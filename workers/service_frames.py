@@ -2,8 +2,9 @@
 
 In: a job id, its row and its sequence's row in PostGIS, the sequence package on the shared
 storage. Out: the package's frames decoded into this worker process's frame cache
-(`db.sequence_package.PackageFrames`: raw and physical values, `FRAME_CACHE_BYTES`, keyed by file,
-size and modification time); nothing written anywhere.
+(`db.sequence_package.PackageFrames.raw`: the decoded stored values, `FRAME_CACHE_BYTES`, keyed
+by file, size and modification time; physical values are one table gather from them); nothing
+written anywhere.
 
 Why: the calibrate stage runs in the prepare task alone (about 3.5 CPU s of the ~4 serial CPU s of
 the service bench's job) and everything after it (orientation windows, plan, units) starts from
@@ -74,7 +75,7 @@ def prefetch_frames(job_id: str) -> str:
             for i in range(len(frames)):
                 if i and i % CHECK_EVERY == 0 and not _calibrating(jid):
                     break
-                held += frames.raw(i).nbytes + frames.load(i).nbytes
+                held += frames.raw(i).nbytes  # what the cache keeps (`load` converts from it)
                 n += 1
                 if held >= FRAME_CACHE_BYTES:
                     break

@@ -28,12 +28,9 @@ def package(tmp_path: Path) -> Path:
 
 
 def cached_files(pkg: Path) -> set[str]:
-    """The package's frame files in this process's frame cache (raw and physical values both)."""
+    """The package's frame files in this process's frame cache (decoded stored values)."""
     root = str(open_package(pkg).root / "frames")
-    raw = {k[0] for k in sequence_package._FRAMES if len(k) == 3 and str(k[0]).startswith(root)}
-    physical = {k[0] for k in sequence_package._FRAMES if len(k) > 3 and str(k[0]).startswith(root)}
-    assert raw == physical
-    return {Path(f).name for f in raw}
+    return {Path(k[0]).name for k in sequence_package._FRAMES if str(k[0]).startswith(root)}
 
 
 @pytest.fixture
@@ -90,7 +87,7 @@ def test_the_prefetch_stops_when_the_job_moves_on_to_orient(
 def test_the_prefetch_stops_when_the_frame_cache_is_full(
     package: Path, job: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    per_frame = CAM.width * CAM.height * (2 + 4)  # uint16 as stored, float32 physical values
+    per_frame = CAM.width * CAM.height * 2  # uint16 as stored (the cache keeps no physical values)
     monkeypatch.setattr(sf, "FRAME_CACHE_BYTES", 5 * per_frame)
     assert sf.prefetch_frames(str(uuid.uuid4())) == "decoded 5 frames"
 

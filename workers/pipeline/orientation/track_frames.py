@@ -14,15 +14,51 @@ strength of a frame cost about a third of its tracking (the 300-frame NRW drive,
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-if TYPE_CHECKING:
-    from workers.pipeline.orientation.tracks import TrackOptions
+__all__ = [
+    "TrackOptions", "TrackerFrames", "highpass", "highpass8", "in_free_cells", "texture_peaks",
+    "texture_strength",
+]
 
-__all__ = ["TrackerFrames", "highpass", "highpass8", "in_free_cells", "texture_peaks", "texture_strength"]
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """Parameters of detection and tracking (pixels)."""
+
+    # structure tensor: Gaussian window σ; a point's smaller eigenvalue must reach this multiple
+    # of the frame's median (the floor of noise and fixed-pattern stripes); non-maximum
+    # suppression radius
+    window_sigma_px: float = 2.5
+    min_texture_ratio: float = 10.0
+    nms_radius_px: int = 4
+    # new tracks: at most one per free cell of this size, up to `max_tracks` active ones, this far
+    # from the frame border
+    cell_px: int = 32
+    max_tracks: int = 200
+    border_px: int = 16
+    # the rays this far around a point must meet the same model polygon (else: an occlusion
+    # boundary or no surface), at incidence |cos| ≥ `min_incidence`
+    boundary_px: float = 6.0
+    min_incidence: float = 0.15
+    # coarse: pyramidal LK window, levels, forward-backward tolerance; the high-pass copy: blur σ
+    lk_window_px: int = 21
+    lk_levels: int = 3
+    fb_tolerance_px: float = 1.0
+    highpass_sigma_px: float = 32.0
+    # fine: half window of the float LK (Gaussian weights of σ = half window / 2), iterations,
+    # the largest step from the coarse position, the correlation a track needs to go on
+    fine_half_window_px: int = 7
+    fine_iterations: int = 12
+    fine_max_shift_px: float = 3.0
+    min_ncc: float = 0.85
+    # RANSAC of the essential matrix between consecutive frames: threshold
+    ransac_px: float = 1.0
+    # a track ends after this many views (the template ages)
+    max_length: int = 12
 
 
 def texture_strength(image: np.ndarray, window_sigma: float) -> np.ndarray:

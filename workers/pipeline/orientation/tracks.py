@@ -39,45 +39,14 @@ import numpy as np
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster
-from workers.pipeline.orientation.track_frames import TrackerFrames, in_free_cells, texture_strength
+from workers.pipeline.orientation.track_frames import (
+    TrackerFrames,
+    TrackOptions,
+    in_free_cells,
+    texture_strength,
+)
 
 __all__ = ["TrackOptions", "TrackerFrames", "Tracks", "plane_affine", "texture_strength", "track_sequence"]
-
-
-@dataclass(frozen=True)
-class TrackOptions:
-    """Parameters of detection and tracking (pixels)."""
-
-    # structure tensor: Gaussian window σ; a point's smaller eigenvalue must reach this multiple
-    # of the frame's median (the floor of noise and fixed-pattern stripes); non-maximum
-    # suppression radius
-    window_sigma_px: float = 2.5
-    min_texture_ratio: float = 10.0
-    nms_radius_px: int = 4
-    # new tracks: at most one per free cell of this size, up to `max_tracks` active ones, this far
-    # from the frame border
-    cell_px: int = 32
-    max_tracks: int = 200
-    border_px: int = 16
-    # the rays this far around a point must meet the same model polygon (else: an occlusion
-    # boundary or no surface), at incidence |cos| ≥ `min_incidence`
-    boundary_px: float = 6.0
-    min_incidence: float = 0.15
-    # coarse: pyramidal LK window, levels, forward-backward tolerance; the high-pass copy: blur σ
-    lk_window_px: int = 21
-    lk_levels: int = 3
-    fb_tolerance_px: float = 1.0
-    highpass_sigma_px: float = 32.0
-    # fine: half window of the float LK (Gaussian weights of σ = half window / 2), iterations,
-    # the largest step from the coarse position, the correlation a track needs to go on
-    fine_half_window_px: int = 7
-    fine_iterations: int = 12
-    fine_max_shift_px: float = 3.0
-    min_ncc: float = 0.85
-    # RANSAC of the essential matrix between consecutive frames: threshold
-    ransac_px: float = 1.0
-    # a track ends after this many views (the template ages)
-    max_length: int = 12
 
 
 @dataclass(frozen=True, eq=False)
