@@ -35,11 +35,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 
 from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
+from workers.pipeline.geometry.pose_increments import so3_log
 from workers.pipeline.orientation.bundle import bundle_adjust
 from workers.pipeline.orientation.bundle_types import BundleOptions
 from workers.pipeline.orientation.priors import frame_noise_covariance
@@ -161,13 +161,8 @@ def common_move(poses: Sequence[Pose], priors: Sequence[Pose]) -> tuple[float, f
         return 0.0, 0.0
     pairs = list(zip(poses, priors, strict=True))
     d = np.mean([p.center - q.center for p, q in pairs], axis=0)
-    w = np.mean([_rotvec(p.R_world_from_cam @ q.R_world_from_cam.T) for p, q in pairs], axis=0)
+    w = np.mean([so3_log(p.R_world_from_cam @ q.R_world_from_cam.T) for p, q in pairs], axis=0)
     return float(np.linalg.norm(d)), float(np.degrees(np.linalg.norm(w)))
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vector `(3,)` (radians) of a rotation matrix `(3, 3)`."""
-    return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].reshape(3)
 
 
 def _refusal(priors: list[Pose], tracks: Tracks) -> Callable[..., MultiViewBlock]:

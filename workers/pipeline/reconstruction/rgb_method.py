@@ -187,11 +187,10 @@ def register_tir_on_rgb(
 @dataclass(frozen=True, eq=False)
 class TirCloud:
     """The TIR block's dense cloud (`cloud`), the poses it was placed with (`placed`: what the
-    ICP transform corrects), the dense options used and the multi-view block (None: not run)."""
+    ICP transform corrects) and the multi-view block (None: not run)."""
 
     cloud: DenseCloud
     placed: list[Pose]
-    dense: DenseOptions
     block: MultiViewBlock | None
 
 
@@ -207,7 +206,7 @@ def tir_cloud(
         start, dense = list(block.poses), options.tir_block
     else:
         start, dense = list(poses), options.tir
-    return TirCloud(dense_cloud(load, camera, start, dense), block_poses(start, dense), dense, block)
+    return TirCloud(dense_cloud(load, camera, start, dense), block_poses(start, dense), block)
 
 
 def orient_with_rgb(
