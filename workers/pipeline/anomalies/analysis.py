@@ -14,8 +14,15 @@ import cv2
 import numpy as np
 
 from workers.pipeline.anomalies import figures
-from workers.pipeline.anomalies.leaks import HALF_MAX_RADIUS, LeakInputs, Region, find_leaks, fit_blob
-from workers.pipeline.anomalies.lines import line_profiles, runs
+from workers.pipeline.anomalies.leaks import (
+    HALF_MAX_RADIUS,
+    MIN_AMPLITUDE,
+    LeakInputs,
+    Region,
+    find_leaks,
+    fit_blob,
+)
+from workers.pipeline.anomalies.lines import line_profiles, narrow_lines, runs
 from workers.pipeline.anomalies.options import AnomalyError, AnomalyOptions
 from workers.pipeline.anomalies.outline import bbox, box_ring, outline, world_ring
 from workers.pipeline.anomalies.typical import edge_band, frames_per_texel, robust_stats, smooth
@@ -165,6 +172,8 @@ def analyse_surface(
     if leaks.any():  # the leaks' own heat out of the line profiles
         fit_on = (fit_residual(value - t1, observed, keep, leaks, size, o) - shift, usable)
         fit_on[0][panes] = residual[panes]
+        if 3 * size <= o.line_width_m:  # pipes resolved: their texels out of the amplitude fit
+            fit_on = (fit_on[0], usable & ~narrow_lines(col, row, MIN_AMPLITUDE * thr))
     for r in regions:
         a = _region_anomaly(grid, texture, r, frames_n, thr, min_frames, o, fit_on)
         if a is None:
