@@ -48,3 +48,18 @@ def test_a_leak_does_not_raise_its_own_threshold(seed):
     assert single_pass(bg + leak, calm) > 1.3 * leak_free  # the leak's curvature inflates one pass
     assert leak_threshold(bg + leak, calm, SIZE, OPTIONS) <= 1.15 * leak_free
     assert leak_threshold(bg, calm, SIZE, OPTIONS) <= leak_free  # never raised
+
+
+def test_a_strip_too_small_for_a_spread_gets_the_floor():
+    """A 2.8 × 1.1 m strip of wall (0.1 m texels) holding a 2 K leak and part of a cold pane:
+    the high-pass at 0.6 m keeps both, which made a threshold of 2.3 K over the leak (the
+    errors drive's missed leak). Under a disk of radius 1.2 m of calm area the floor applies;
+    the same pattern tiled over 9 m² keeps its measured spread."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:11, 0:28].astype(float)
+    r = -1.7 * np.exp(-0.5 * ((xx - 6) / 3) ** 2) + 2.0 * np.exp(-0.5 * ((xx - 18) ** 2 + (yy - 8) ** 2) / 25)
+    r = (r - np.median(r) + rng.normal(0, 0.03, r.shape)).astype(np.float32)
+    o = AnomalyOptions()
+    assert leak_threshold(r, np.ones(r.shape, bool), 0.1, o) == o.floor_k
+    big = np.tile(r, (3, 3))
+    assert leak_threshold(big, np.ones(big.shape, bool), 0.1, o) > 2.0

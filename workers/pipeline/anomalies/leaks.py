@@ -39,7 +39,7 @@ from workers.pipeline.anomalies.options import AnomalyOptions
 
 _FIT_RADIUS = 2  # texels around the maximum used by the peak fit
 HALF_MAX_RADIUS = math.sqrt(2 * math.log(2))  # half-maximum radius of a Gaussian, in σ
-_MIN_AMPLITUDE = 0.75  # a leak's amplitude over its local background, in units of the threshold
+MIN_AMPLITUDE = 0.75  # a leak's amplitude over its local background, in units of the threshold
 _CLOSE = np.ones((9, 9), np.uint8)  # closes gaps up to 8 texels (a window frame and its margins)
 
 
@@ -354,7 +354,7 @@ def find_leaks(
             continue
         if any(np.hypot(top[1] + 0.5 - c[0], top[0] + 0.5 - c[1]) < r for c, r in reach):
             continue  # the tail of a stronger leak, seen past a window or a bridge
-        pieces = [("leak", region, peak, bg, centre)] if peak >= _MIN_AMPLITUDE * thr else []
+        pieces = [("leak", region, peak, bg, centre)] if peak >= MIN_AMPLITUDE * thr else []
         if is_line(region, size, o):
             pieces = [("bridge", region, float(inp.smoothed[top]), 0.0, centre)]
             core = _core(region, size)

@@ -103,7 +103,7 @@ class AnomalyOptions:
     window_min_texels: int = 3
     window_fill: float = 0.85
     window_min_count: int = 2
-    window_lone_fill: float = 0.9
+    window_lone_fill: float = 0.85
     window_margin_m: float = 0.15
     edge_band_m: float = 0.15
     outline_band_m: float = 0.4
