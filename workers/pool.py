@@ -9,6 +9,7 @@ import multiprocessing.context
 import os
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import forkserver
 from typing import Any
 
 #: thread-pool sizes of numerical libraries read from the environment when they load (OpenMP,
@@ -41,11 +42,12 @@ def cap_library_threads() -> int | None:
     if not value:
         return None
     import cv2
-    import open3d
+
+    from workers.pipeline.geometry.open3d_light import load_open3d
 
     threads = int(value)
     cv2.setNumThreads(threads)
-    open3d.utility.set_max_threads(threads)
+    load_open3d().utility.set_max_threads(threads)
     return threads
 
 
@@ -62,9 +64,29 @@ def pool_context(workers: int) -> multiprocessing.context.BaseContext:
     if "forkserver" not in methods:
         return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
-    # workers fork from a server that has already imported the pipeline and Open3D (~1 s each)
-    ctx.set_forkserver_preload(["workers.pipeline.units", "open3d"])
+    # workers fork from a server that has already imported the job's modules and Open3D
+    ctx.set_forkserver_preload(["workers.preload"])
     return ctx
+
+
+def start_pool_server(workers: int) -> None:
+    """Start the fork server of `pool_context(workers)` now (`workers > 1` and forkserver only),
+    so that its imports (`workers.preload`, about 2 CPU s) overlap the job's first stages instead
+    of delaying its first pool. The library-thread environment of `pool_context` is given to the
+    server only: this process's own environment is left as it was (its libraries read theirs
+    when they load)."""
+    if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
+        return
+    before = {var: os.environ.get(var) for var in (*LIBRARY_THREAD_VARS, THREADS_VAR)}
+    try:
+        pool_context(workers)
+        forkserver.ensure_running()
+    finally:
+        for var, value in before.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 

@@ -38,7 +38,7 @@ from workers.job import (
 )
 from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.units import BuildingUnit, Refiner
-from workers.pool import cap_library_threads, pool_context
+from workers.pool import cap_library_threads, pool_context, start_pool_server
 from workers.split_half import split_half_report
 
 
@@ -111,6 +111,7 @@ def run_job(
     pixels included, as it finishes (its tiles are written by then; the results folder's other
     files come at the end)."""
     timings: dict[str, float] = {}
+    start_pool_server(options.workers)  # its imports overlap ingest and calibrate
     with open_package(package) as pkg:  # an archive stays extracted for the job's duration
         t0 = time.perf_counter()
         ingested = ingest(city_gml, pkg.root, options, progress)
