@@ -111,8 +111,9 @@ def run_job(
     pixels included, as it finishes (its tiles are written by then; the results folder's other
     files come at the end)."""
     timings: dict[str, float] = {}
-    start_pool_server(options.workers)  # its imports overlap ingest and calibrate
     with open_package(package) as pkg:  # an archive stays extracted for the job's duration
+        # the pool's server imports and decodes the frames while ingest and calibrate run here
+        start_pool_server(options.workers, pkg.frames)
         t0 = time.perf_counter()
         ingested = ingest(city_gml, pkg.root, options, progress)
         timings["ingest"] = time.perf_counter() - t0
