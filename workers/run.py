@@ -6,7 +6,10 @@ for the job's duration), an output folder and `RunOptions`. Out: the results fol
 
 The building units run in this process (`workers == 1`) or in a forkserver process pool, each
 worker with `cpu_count // workers` library threads; their tiles are written as they finish, so
-the job's memory stays small. Scripts that run pools need the `if __name__ == "__main__"` guard.
+the job's memory stays small. The pool's fork server starts with the job (`pool.start_pool_server`):
+it imports the job's modules and decodes the frames (when they fit in the frame cache) while
+ingest and calibrate run here, and the orient and units workers fork from it with both done.
+Scripts that run pools need the `if __name__ == "__main__"` guard.
 """
 
 from __future__ import annotations
