@@ -4,11 +4,14 @@ split-half check (`workers.split_half`) share it."""
 
 from __future__ import annotations
 
+import base64
 import multiprocessing
 import multiprocessing.context
 import os
+import pickle
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import forkserver
 from typing import Any
 
 #: thread-pool sizes of numerical libraries read from the environment when they load (OpenMP,
@@ -41,11 +44,12 @@ def cap_library_threads() -> int | None:
     if not value:
         return None
     import cv2
-    import open3d
+
+    from workers.pipeline.geometry.open3d_light import load_open3d
 
     threads = int(value)
     cv2.setNumThreads(threads)
-    open3d.utility.set_max_threads(threads)
+    load_open3d().utility.set_max_threads(threads)
     return threads
 
 
@@ -62,9 +66,44 @@ def pool_context(workers: int) -> multiprocessing.context.BaseContext:
     if "forkserver" not in methods:
         return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
-    # workers fork from a server that has already imported the pipeline and Open3D (~1 s each)
-    ctx.set_forkserver_preload(["workers.pipeline.units", "open3d"])
+    # workers fork from a server that has already imported the job's modules and Open3D
+    ctx.set_forkserver_preload(["workers.preload"])
     return ctx
+
+
+#: the frames the fork server decodes before it forks workers (`start_pool_server`)
+PRELOAD_FRAMES_VAR = "CITYTHERM_PRELOAD_FRAMES"
+#: a frame source pickled larger than this is not handed to the fork server (environment limits)
+_MAX_FRAMES_PICKLE = 96 * 1024
+
+
+def start_pool_server(workers: int, frames: object | None = None) -> None:
+    """Start the fork server of `pool_context(workers)` now (`workers > 1` and forkserver only),
+    so that its imports (`workers.preload`, about 2 CPU s) overlap the job's first stages instead
+    of delaying its first pool. The library-thread environment of `pool_context` is given to the
+    server only: this process's own environment is left as it was (its libraries read theirs
+    when they load).
+
+    `frames`: the job's picklable frame source with a per-process cache of decoded frames
+    (`db.sequence_package.PackageFrames`): the server decodes every frame once when they all
+    fit in the cache (`workers.preload.decode_frames`), and every worker forked from it finds
+    them decoded (copy on write) instead of decoding each frame again in each process."""
+    if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
+        return
+    before = {var: os.environ.get(var) for var in (*LIBRARY_THREAD_VARS, THREADS_VAR, PRELOAD_FRAMES_VAR)}
+    try:
+        pool_context(workers)
+        if frames is not None:
+            blob = base64.b64encode(pickle.dumps(frames)).decode("ascii")
+            if len(blob) <= _MAX_FRAMES_PICKLE:
+                os.environ[PRELOAD_FRAMES_VAR] = blob
+        forkserver.ensure_running()
+    finally:
+        for var, value in before.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 

@@ -6,7 +6,10 @@ for the job's duration), an output folder and `RunOptions`. Out: the results fol
 
 The building units run in this process (`workers == 1`) or in a forkserver process pool, each
 worker with `cpu_count // workers` library threads; their tiles are written as they finish, so
-the job's memory stays small. Scripts that run pools need the `if __name__ == "__main__"` guard.
+the job's memory stays small. The pool's fork server starts with the job (`pool.start_pool_server`):
+it imports the job's modules and decodes the frames (when they fit in the frame cache) while
+ingest and calibrate run here, and the orient and units workers fork from it with both done.
+Scripts that run pools need the `if __name__ == "__main__"` guard.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from workers.job import (
 )
 from workers.pipeline.results import BuildingResult, TextureTile
 from workers.pipeline.units import BuildingUnit, Refiner
-from workers.pool import cap_library_threads, pool_context
+from workers.pool import cap_library_threads, pool_context, start_pool_server
 from workers.split_half import split_half_report
 
 
@@ -112,6 +115,8 @@ def run_job(
     files come at the end)."""
     timings: dict[str, float] = {}
     with open_package(package) as pkg:  # an archive stays extracted for the job's duration
+        # the pool's server imports and decodes the frames while ingest and calibrate run here
+        start_pool_server(options.workers, pkg.frames)
         t0 = time.perf_counter()
         ingested = ingest(city_gml, pkg.root, options, progress)
         timings["ingest"] = time.perf_counter() - t0

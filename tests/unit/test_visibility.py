@@ -192,3 +192,22 @@ def test_pixels_to_cast_are_exactly_the_sampling_windows():
         k = np.arange(3 + 2 * m)
         want = np.unique(lin[:, None] + (k[:, None] * 60 + k[None, :]).ravel()[None])
         assert np.array_equal(grid.needed(lin, 3 + 2 * m, 0), want)
+
+
+def test_pixels_to_cast_by_marking_equal_the_sorted_list():
+    """Listed windows of more than `_SORT_MAX` elements are marked in the grid's flag array
+    instead of sorted: the same pixels, and the flags are clear again for the next call."""
+    from workers.pipeline.texture.occlusion import _SORT_MAX, _CastGrid, _offsets
+
+    grid = _CastGrid(np.zeros((400, 500, 3), np.float32))
+    rng = np.random.default_rng(6)
+    paths = set()
+    for m, n in ((1, 300), (0, 40), (1, 300), (2, 200), (1, 20)):
+        lin = rng.integers(m, 396 - m, n) * 500 + rng.integers(m, 496 - m, n)
+        assert n * (2 + 2 * m) ** 2 * 8 < grid.height * grid.width  # the listed path
+        want = np.unique(lin[:, None] + _offsets(500, m)[None])
+        got = grid.needed(lin, 2 + 2 * m, m)
+        assert np.array_equal(got, want)
+        paths.add(n * (2 + 2 * m) ** 2 > _SORT_MAX)
+        assert not grid._mark.any()
+    assert paths == {True, False}  # both the sorted and the marked list ran

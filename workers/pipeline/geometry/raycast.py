@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from workers.pipeline.geometry.citymodel import Building, Polygon
+from workers.pipeline.geometry.open3d_light import load_open3d
 from workers.pipeline.geometry.polygons import fit_plane, triangulate
 
 
@@ -150,7 +151,7 @@ class RayHits:
 
 def open3d_scene(mesh: SceneMesh) -> Any:
     """An Open3D `RaycastingScene` over `mesh.vertices` (the mesh's local frame)."""
-    import open3d as o3d  # imported here: heavy, and only the processes that cast need it
+    o3d = load_open3d()  # here: heavy, and only the processes that cast need it
 
     scene = o3d.t.geometry.RaycastingScene()
     if len(mesh.triangles):
@@ -165,7 +166,7 @@ class RayCaster:
     """Ray queries against a `SceneMesh` (Open3D `RaycastingScene`, multi-threaded)."""
 
     def __init__(self, mesh: SceneMesh) -> None:
-        import open3d as o3d  # imported here: heavy, and only the processes that cast need it
+        o3d = load_open3d()  # here: heavy, and only the processes that cast need it
 
         self.mesh = mesh
         self._o3d = o3d

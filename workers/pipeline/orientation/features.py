@@ -88,10 +88,15 @@ class ImageFeatures:
         gx, gy: `(h, w)` float32 gradient of the smoothed normalised image over the ROI
             (per pixel; index `[v - v0, u - u0]`).
         grad_ref: robust gradient scale of the ROI (a high percentile of the magnitude), for thresholds.
+        norm: `(h, w)` float32 contrast-normalised ROI (0..1).
+        options: the options the features were extracted with (`edges` and `dt` follow them).
+
+    Properties, computed on first use and kept (most users need the gradients only: the edge
+    observations never read them, and the Canny map and its distance transforms cost three
+    times the rest of `extract_features`):
+        edges: `(h, w)` uint8 strong-edge map of the ROI (255 = edge).
         dt: level -> `(h_l, w_l)` float32 distance (in level pixels, truncated) to the nearest
             strong edge; level pixel `(i, j)` covers full-frame pixel `(u0 + s j + (s-1)/2, ...)`.
-        edges: `(h, w)` uint8 strong-edge map of the ROI (255 = edge).
-        norm: `(h, w)` float32 contrast-normalised ROI (0..1).
     """
 
     forstner: np.ndarray
@@ -102,9 +107,26 @@ class ImageFeatures:
     gx: np.ndarray
     gy: np.ndarray
     grad_ref: float
-    dt: dict[int, np.ndarray]
-    edges: np.ndarray
     norm: np.ndarray
+    options: FeatureOptions = FeatureOptions()
+
+    @property
+    def edges(self) -> np.ndarray:
+        """`(h, w)` uint8 strong-edge map of the ROI (`strong_edges`), built once."""
+        e = self.__dict__.get("_edges")
+        if e is None:
+            e = strong_edges(self.norm, self.grad_ref, self.options)
+            object.__setattr__(self, "_edges", e)
+        return e
+
+    @property
+    def dt(self) -> dict[int, np.ndarray]:
+        """Level -> truncated distance transform of `edges` (`_distance_pyramid`), built once."""
+        d = self.__dict__.get("_dt")
+        if d is None:
+            d = _distance_pyramid(self.edges, self.options)
+            object.__setattr__(self, "_dt", d)
+        return d
 
     @property
     def grad(self) -> np.ndarray:
@@ -272,6 +294,16 @@ def segment_intersections(segments: np.ndarray, options: FeatureOptions = Featur
     return p[i] + s[:, None] * d[i]
 
 
+def strong_edges(norm: np.ndarray, grad_ref: float, options: FeatureOptions) -> np.ndarray:
+    """Strong-edge map `(h, w)` uint8 (255 = edge) of a contrast-normalised ROI `norm` `(h, w)`:
+    Canny on the 8-bit smoothed image, thresholds relative to the ROI's gradient scale
+    `grad_ref` (`ImageFeatures.grad_ref`)."""
+    img8 = np.clip(_gauss(norm, options.smooth_sigma) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    sobel_ref = grad_ref * 255.0 * 8.0  # Canny's Sobel aperture-3 magnitude of the same step
+    lo, hi = options.edge_low_rel * sobel_ref, options.edge_high_rel * sobel_ref
+    return cv2.Canny(img8, lo, hi, L2gradient=True)
+
+
 def _distance_pyramid(edges: np.ndarray, options: FeatureOptions) -> dict[int, np.ndarray]:
     """Strong-edge map `(h, w)` uint8 -> level -> truncated distance transform (level pixels)."""
     out: dict[int, np.ndarray] = {}
@@ -317,12 +349,6 @@ def extract_features(
     st = options.percentile_stride
     mag = np.hypot(gx[::st, ::st], gy[::st, ::st])
     grad_ref = float(np.percentile(mag, options.gradient_ref_percentile)) or 1e-6
-    # strong-edge map: Canny on the 8-bit smoothed image, thresholds relative to the ROI contrast
-    img8 = np.clip(_gauss(norm, options.smooth_sigma) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    sobel_ref = grad_ref * 255.0 * 8.0  # Canny's Sobel aperture-3 magnitude of the same step
-    edges = cv2.Canny(
-        img8, options.edge_low_rel * sobel_ref, options.edge_high_rel * sobel_ref, L2gradient=True
-    )
     empty = np.zeros((0, 2))
     feats = ImageFeatures(
         forstner=empty,
@@ -333,9 +359,8 @@ def extract_features(
         gx=gx,
         gy=gy,
         grad_ref=grad_ref,
-        dt=_distance_pyramid(edges, options),
-        edges=edges,
         norm=norm,
+        options=options,
     )
     return with_points(feats, feats.roi, options) if points else feats
 
