@@ -93,24 +93,6 @@ def test_nothing_textured_that_no_frame_sees(figures: dict[str, Any]) -> None:
     assert figures["unseen_texels_delivered"]["texels"] == 0, _brief(figures)
 
 
-@pytest.mark.parametrize(
-    "figures",
-    [
-        "drive",
-        pytest.param(
-            "flight",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="issue 15 open: walls whose foot lies below the synthetic ground get texels "
-                "the reference finds mixed. The synthetic world's ground is one plane at the "
-                "cluster's median base height (the NRW terrain is hilly), so in the frames it cuts "
-                "across lower-standing walls above their foot, which the city model, and so the "
-                "product, cannot know; the reference renders that plane. 10 walls on this flight.",
-            ),
-        ),
-    ],
-    indirect=True,
-)
 def test_no_surface_textured_from_mixed_pixels_only(figures: dict[str, Any]) -> None:
     assert figures["hidden_surfaces_textured"]["count"] == 0, _brief(figures)
 
