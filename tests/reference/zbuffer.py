@@ -12,9 +12,10 @@ analytic ground plane `z = ground_z` (the synthetic world's) fills it first; a t
 (`RefGround`: a TIN inside the plane, the synthetic world's `ground` read as plain arrays) clears
 the plane inside the TIN's outer boundary and is rasterized triangle by triangle like the polygons
 (label `GROUND`). Then each real pixel
-looks up the virtual pixels under `supersample²` points spread over its area (their undistorted
-positions, `cv2.undistortPointsIter`): `centre` is the id under the pixel centre, `pure` the
-common id of all of them, `MIXED` where they disagree (an edge crosses the pixel).
+looks up the virtual pixels under `supersample²` points spread over its closed area, edges
+included (their undistorted positions, `cv2.undistortPointsIter`): `centre` is the id under the
+pixel centre, `pure` the common id of all of them, `MIXED` where they disagree (an edge crosses
+or touches the pixel).
 """
 
 from __future__ import annotations
@@ -94,7 +95,9 @@ class RefCamera:
         """Flat virtual-pixel indices `(S, H·W)` int64 of the `S = supersample²` area samples of
         every real pixel (row-major), and the index of the one at the pixel centre `(H·W,)`."""
         ss = self.supersample
-        offs = (np.arange(ss) + 0.5) / ss - 0.5
+        # spread over the pixel's closed area, its edges included (shared with the neighbours): a
+        # footprint of whole pixels is tested up to its boundary, as the issue's rule wants
+        offs = np.linspace(-0.5, 0.5, ss) if ss > 1 else np.zeros(1)
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         fv, cx, cy, Wv, Hv = self.virtual
 

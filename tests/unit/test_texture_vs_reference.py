@@ -93,6 +93,25 @@ def test_nothing_textured_that_no_frame_sees(figures: dict[str, Any]) -> None:
     assert figures["unseen_texels_delivered"]["texels"] == 0, _brief(figures)
 
 
+@pytest.mark.parametrize(
+    "figures",
+    [
+        "drive",
+        pytest.param(
+            "flight",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="issue 15 open: 2 surfaces of 1 texel each (a wall, a roof) that the "
+                "reference finds mixed in every frame. The reference samples each pixel's closed "
+                "area every 1/5 px (edges included); the product's footprint test casts rays "
+                "through the 4 x 4 block's pixel corners and centres only (every 1/2 px), so a "
+                "polygon corner reaching less than half a pixel into the block between those rays "
+                "goes unseen.",
+            ),
+        ),
+    ],
+    indirect=True,
+)
 def test_no_surface_textured_from_mixed_pixels_only(figures: dict[str, Any]) -> None:
     assert figures["hidden_surfaces_textured"]["count"] == 0, _brief(figures)
 
