@@ -9,6 +9,7 @@ were refined, the refined poses' errors against the true poses.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -22,11 +23,13 @@ from workers.pipeline.texture.quality import summarize, surface_errors, truth_ra
 from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
 
 
-def below_ground(grid: TexelGrid, ground_z: float) -> np.ndarray:
-    """`(H, W)` bool: texel centres below the synthetic ground plane (hidden in that world)."""
+def below_ground(grid: TexelGrid, ground_z: float | Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """`(H, W)` bool: texel centres below the synthetic ground (hidden in that world): the plane
+    `ground_z`, or a height function `xy (N, 2) -> (N,)` m (`SynthTruth.ground_height`)."""
     r, c = np.indices(grid.shape)
-    z = grid.centres(r.ravel(), c.ravel())[:, 2].reshape(grid.shape)
-    return z < ground_z
+    X = grid.centres(r.ravel(), c.ravel())
+    h = ground_z(X[:, :2]) if callable(ground_z) else np.full(len(X), ground_z)
+    return (X[:, 2] < h).reshape(grid.shape)
 
 
 def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
@@ -37,7 +40,7 @@ def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
     processed = {b["id"] for b in rep["buildings"]}
     got = {s.polygon.id: s for s in iter_surface_textures(out, res.manifest.radiometry)}
     caster = RayCaster(res.mesh)
-    gz = res.truth.ground_z
+    gz = res.truth.ground_z if res.truth.ground is None else res.truth.ground_height
     opts = TexelOptions(resolution_px_per_m=float(rep["resolution_px_per_m"]))
     per_surface = surface_resolutions(rep)
     errors = []
@@ -50,14 +53,18 @@ def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
                 grid = texel_grid(poly, part.id, replace(opts, resolution_px_per_m=r))
                 if grid is None:
                     continue
-                vis = visible_texels(grid, res.manifest.camera, res.truth.poses, caster, ground_z=gz)
+                below = below_ground(grid, gz)
+                if callable(gz):  # a terrain: its texels below it are never seen (as the plane's)
+                    vis = visible_texels(grid, res.manifest.camera, res.truth.poses, caster) & ~below
+                else:
+                    vis = visible_texels(grid, res.manifest.camera, res.truth.poses, caster, ground_z=gz)
                 if not vis.any() and poly.id not in got:
                     continue
                 truth = truth_raster(grid, lambda X, pid=poly.id: res.thermal.surface_temperature(pid, X))
                 value = (
                     got[poly.id].value.copy() if poly.id in got else np.full(grid.shape, np.nan, np.float32)
                 )
-                value[below_ground(grid, gz)] = np.nan
+                value[below] = np.nan
                 errors.append(surface_errors(grid, value, truth, vis))
     return summarize(errors)
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from tests.reference.geometry import ScenePolygon, scene_polygons
 from tests.reference.texturer import ReferenceOptions, RefTexture, reference_textures
-from tests.reference.zbuffer import RefCamera
+from tests.reference.zbuffer import RefCamera, RefGround
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -191,6 +191,6 @@ def run_reference(
         poses,
         frame_loader(case),
         o,
-        ground_z=float(res.truth.ground_z),
+        ground_z=RefGround.from_truth(res.truth),
     )
     return polys, tex, time.perf_counter() - t0

@@ -4,8 +4,8 @@ In: a `compare.Case` (synthetic truth: `res.thermal.surface_temperature(polygon 
 plane), the product's results folder (read with `db.results_folder.read.iter_surface_textures`,
 its texel grids re-laid from `report.json`) and the reference's textures. Each texturer is
 evaluated at its OWN texel centres (world, model CRS, metres; kelvin). Texels below the synthetic
-ground plane are left out of the product's figures, as `workers.synth_eval` does (that world
-buries them; the product cannot know).
+ground (its plane or terrain, `truth.ground_height`) are left out of the product's figures, as
+`workers.synth_eval` does (that world buries them; the product cannot know).
 
 Every error figure is area-weighted (each texel counts by its area): the two grids differ in
 density, and the product's may differ from surface to surface.
@@ -166,11 +166,11 @@ def product_textures(out_dir: Any, case: Case) -> Iterable[tuple[str, np.ndarray
     (N,) K, texel size m)` of its observed texels above the synthetic ground."""
     from db.results_folder.read import iter_surface_textures
 
-    gz = float(case.res.truth.ground_z)
+    truth = case.res.truth
     for s in iter_surface_textures(out_dir, case.res.manifest.radiometry):
         r, c = np.nonzero(s.grid.mask & np.isfinite(s.value))
         X = s.grid.centres(r, c)
-        above = X[:, 2] >= gz
+        above = X[:, 2] >= truth.ground_height(X)
         yield s.polygon.id, X[above], s.value[r, c][above].astype(np.float64), float(s.grid.size)
 
 

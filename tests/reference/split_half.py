@@ -31,7 +31,7 @@ import numpy as np
 from tests.reference.compare import Case, frame_loader, reference_options
 from tests.reference.geometry import scene_polygons
 from tests.reference.texturer import ReferenceOptions, RefTexture, reference_half_textures
-from tests.reference.zbuffer import RefCamera
+from tests.reference.zbuffer import RefCamera, RefGround
 from workers.pipeline.texture.split_half import (
     SplitHalfOptions,
     SurfaceAgreement,
@@ -103,7 +103,7 @@ def run_reference_split_half(
         [(p.R_world_from_cam, p.center) for p in res.truth.poses],
         frame_loader(case),
         o,
-        ground_z=float(res.truth.ground_z),
+        ground_z=RefGround.from_truth(res.truth),
     )
     found = compare_reference_halves(halves, options)
     owner = {p.polygon_id: p.building_id for p in polys}

@@ -3,10 +3,11 @@
 In: the scene polygons (`geometry.scene_polygons`: every building that may occlude or be
 textured), the surfaces to texture (a subset, by polygon id), a `RefCamera`, the frames' poses as
 plain arrays (`R_wc` `(3, 3)` camera to world, centre `C` `(3,)`, world = model CRS, metres), a
-frame loader (`index -> (H, W) float32 kelvin`), the ground plane height of the synthetic world
-and `ReferenceOptions`. Out: per surface a `RefTexture` on its own `RefGrid`: the fused value per
-texel, the observation count, which frames saw it, the best view angle, ground resolution and
-distance to an id edge, and whether any frame sees its centre at all.
+frame loader (`index -> (H, W) float32 kelvin`), the ground of the synthetic world (its plane's
+height, or a `zbuffer.RefGround` terrain) and `ReferenceOptions`. Out: per surface a `RefTexture`
+on its own `RefGrid`: the fused value per texel, the observation count, which frames saw it, the
+best view angle, ground resolution and distance to an id edge, and whether any frame sees its
+centre at all.
 
 Per frame and texel (the whole rule, nothing else):
 1. project the texel centre (`cv2.projectPoints`); it must be in front, inside the image with
@@ -38,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tests.reference.geometry import RefGrid, ScenePolygon, coplanar_groups, ref_grid
-from tests.reference.zbuffer import IdBuffer, RefCamera, ZBuffer
+from tests.reference.zbuffer import IdBuffer, RefCamera, RefGround, ZBuffer
 
 #: frame index -> float32 kelvin image `(H, W)`
 FrameLoader = Callable[[int], np.ndarray]
@@ -62,12 +63,14 @@ class ReferenceOptions:
         sigma_floor_k: smallest robust sigma, kelvin (two or three agreeing frames have MAD ~ 0).
         coplanar_ok: pixels of a coplanar polygon of the same building and class count as clean.
         supersample: area samples per real pixel side in the z-buffer (edge pixels become MIXED);
-            `compare.run_reference` and the split halves render with it. 6: the samples of a
-            pixel lie 1/12 px from its edges, so the 4 × 4 block of step 2 is tested up to 1/12 px
-            from its boundary (3 left the outermost 1/6 px of the ring untested: on the NRW test
-            drive 3 thin walls, 2-13 texels each, whose neighbouring polygon lies within that sixth
-            counted as clean; with 6 the drive's reference textures 65 surfaces instead of 68, the
-            flight's 294 instead of 301, its RMSE on the surfaces both texture drops slightly).
+            `compare.run_reference` and the split halves render with it. The samples of a pixel
+            span its closed area, edges included (shared with the neighbours, `RefCamera.lookups`):
+            with 6, every 1/5 px, so the 4 × 4 block of step 2 is tested over its whole closed
+            area, boundary included, as the product's test (`pixel_area`: rays through the block's
+            pixel corners and centres) does. Samples at the sub-pixel centres only (`(k + ½)/ss`)
+            left the outermost 1/(2·ss) px of the block untested (1/6 px at 3: 3 thin walls of the
+            NRW test drive counted as clean; 1/12 px at 6: on the quick NRW flight the reference
+            observed ~6 % more area per surface than the product, median ratio 0.938).
         sees_min_pixels: split halves only (`reference_half_textures`): a frame sees a building
             when at least this many of its pixel centres show the building (128: about what the
             product's planning needs, two hits of rays through every 8th pixel).
@@ -288,13 +291,13 @@ def reference_textures(
     poses: Sequence[tuple[np.ndarray, np.ndarray]],
     load_frame: FrameLoader,
     options: ReferenceOptions = ReferenceOptions(),
-    ground_z: float | None = None,
+    ground_z: float | RefGround | None = None,
 ) -> dict[str, RefTexture]:
     """Texture `surfaces` (polygon ids; None: every polygon) of the scene `polygons` from the
     frames `0 .. len(poses)-1` with poses `(R_wc (3, 3), C (3,))`; every polygon of `polygons`
-    (and the ground plane at `ground_z`) occludes. Returns polygon id -> `RefTexture` for every
-    surface that some frame's view frustum reaches from its front side (observed or not); the
-    others are seen by no frame."""
+    (and the ground: the plane at `ground_z`, or a `RefGround` terrain) occludes. Returns
+    polygon id -> `RefTexture` for every surface that some frame's view frustum reaches from its
+    front side (observed or not); the others are seen by no frame."""
     accs, _ = _accumulate(polygons, surfaces, camera, poses, load_frame, options, ground_z, halves=False)
     return {a[0].grid.polygon.polygon_id: _fuse(a[0], options) for a in accs.values()}
 
@@ -306,7 +309,7 @@ def reference_half_textures(
     poses: Sequence[tuple[np.ndarray, np.ndarray]],
     load_frame: FrameLoader,
     options: ReferenceOptions = ReferenceOptions(),
-    ground_z: float | None = None,
+    ground_z: float | RefGround | None = None,
 ) -> tuple[dict[str, tuple[RefTexture, RefTexture]], dict[str, list[int]]]:
     """As `reference_textures`, but each surface textured twice, from the even and from the odd
     half of its building's frames. Returns polygon id -> `(even, odd)` textures on one `RefGrid`,
@@ -338,7 +341,7 @@ def _accumulate(
     poses: Sequence[tuple[np.ndarray, np.ndarray]],
     load_frame: FrameLoader,
     options: ReferenceOptions,
-    ground_z: float | None,
+    ground_z: float | RefGround | None,
     halves: bool,
 ) -> tuple[dict[int, tuple[_Acc, ...]], dict[str, list[int]]]:
     """The observations of every wanted surface a frame may see (see `reference_textures`):

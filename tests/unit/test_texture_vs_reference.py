@@ -101,11 +101,12 @@ def test_nothing_textured_that_no_frame_sees(figures: dict[str, Any]) -> None:
             "flight",
             marks=pytest.mark.xfail(
                 strict=True,
-                reason="issue 15 open: walls whose foot lies below the synthetic ground get texels "
-                "the reference finds mixed. The synthetic world's ground is one plane at the "
-                "cluster's median base height (the NRW terrain is hilly), so in the frames it cuts "
-                "across lower-standing walls above their foot, which the city model, and so the "
-                "product, cannot know; the reference renders that plane. 10 walls on this flight.",
+                reason="issue 15 open: 2 surfaces of 1 texel each (a wall, a roof) that the "
+                "reference finds mixed in every frame. The reference samples each pixel's closed "
+                "area every 1/5 px (edges included); the product's footprint test casts rays "
+                "through the 4 x 4 block's pixel corners and centres only (every 1/2 px), so a "
+                "polygon corner reaching less than half a pixel into the block between those rays "
+                "goes unseen.",
             ),
         ),
     ],

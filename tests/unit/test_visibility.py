@@ -211,3 +211,23 @@ def test_pixels_to_cast_by_marking_equal_the_sorted_list():
         paths.add(n * (2 + 2 * m) ** 2 > _SORT_MAX)
         assert not grid._mark.any()
     assert paths == {True, False}  # both the sorted and the marked list ran
+
+
+def test_a_building_glimpsed_by_one_sparse_ray_is_planned_from_a_denser_grid():
+    """A small far building that only one ray of the every-8th-pixel grid hits (fewer than
+    `min_ray_hits`) gets its unit from the denser grid over its box, and none without it."""
+    D = 30.0
+    b_lo, b_hi = CAM.bearing(np.array([[97.5, 150.5], [102.5, 145.5]]))  # its image box's corners
+    x0, x1 = D * b_lo[0] / b_lo[2], D * b_hi[0] / b_hi[2]
+    zc = D * b_lo[1] / b_lo[2]  # camera height putting the building's foot (z = 0) at row 150.5
+    h = zc - D * b_hi[1] / b_hi[2]
+    tiny = box_building("TINY", x0, 0.0, x1, 0.05, h)
+    pose = look_at([0, -D, zc], [0, 0, zc])
+    frames = MemoryFrames({0: render(CAM, pose, [tiny])})
+    sparse = plan_units([tiny], CAM, [pose], frames, Radiometry(), plan=PlanOptions(glimpse_step_px=0))
+    assert sparse == []  # one hit of the sparse grid: fewer than `min_ray_hits`
+    (unit,) = plan_units([tiny], CAM, [pose], frames, Radiometry())
+    assert unit.frames == (0,)
+    # a building no sparse ray hits stays unplanned (only glimpsed buildings get the dense grid)
+    far = box_building("FAR", x0 + 2.0, 0.0, x1 + 2.0, 0.05, h)  # 12 px right: between the rays
+    assert [u.building.id for u in plan_units([far], CAM, [pose], frames, Radiometry())] == []

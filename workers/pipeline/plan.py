@@ -41,6 +41,10 @@ class PlanOptions:
         ray_step_px: after the box test, rays through every `ray_step_px`-th pixel (in both
             directions) are cast through the candidate buildings; a frame sees a building only
             when at least `min_ray_hits` of them hit it first (0: box test only).
+        glimpse_step_px: a building that some of those rays hit, but never `min_ray_hits` in one
+            frame (a small or far building seen through a few pixels), is tested again with rays
+            through every `glimpse_step_px`-th pixel of its projected box, in the frames whose
+            rays hit it; 0: no second test (such a building gets no unit).
         adjacency_m: buildings whose boxes come this close are always each other's occluders
             (shared walls).
     """
@@ -50,6 +54,7 @@ class PlanOptions:
     min_frames: int = 1
     ray_step_px: int = 8
     min_ray_hits: int = 2
+    glimpse_step_px: int = 4
     adjacency_m: float = 0.5
 
 
@@ -150,7 +155,9 @@ def _ray_sees(
     plan: PlanOptions,
 ) -> np.ndarray:
     """`(F, B)` bool: frame f sees building b with at least `plan.min_ray_hits` first hits of a
-    sparse grid of pixel rays cast through the candidate buildings (`candidates (F, B)`)."""
+    sparse grid of pixel rays cast through the candidate buildings (`candidates (F, B)`); a
+    building glimpsed by fewer in every frame is counted again on a denser grid over its box
+    (`PlanOptions.glimpse_step_px`)."""
     ids = np.nonzero(candidates.any(axis=0))[0]
     mesh = build_scene_mesh([buildings[j] for j in ids])
     caster = RayCaster(mesh)
@@ -158,14 +165,63 @@ def _ray_sees(
     poly_building = np.array([local[b] for b in mesh.polygon_building], dtype=np.intp)
     step = plan.ray_step_px
     rays = pixel_rays(camera)[step // 2 :: step, step // 2 :: step].reshape(-1, 3).astype(np.float64)
-    out = np.zeros_like(candidates)
+    counts = np.zeros(candidates.shape, np.int64)
     for f, pose in enumerate(poses):
         if not candidates[f].any():
             continue
         hits = caster.cast(np.broadcast_to(pose.center, rays.shape), rays @ pose.R_world_from_cam.T)
         ok = (hits.polygon >= 0) & (hits.t <= max_distance_m)
-        counts = np.bincount(poly_building[hits.polygon[ok]], minlength=len(buildings))
-        out[f] = counts >= plan.min_ray_hits
+        counts[f] = np.bincount(poly_building[hits.polygon[ok]], minlength=len(buildings))
+    out = counts >= plan.min_ray_hits
+    glimpsed = np.flatnonzero((counts.max(axis=0) > 0) & ~out.any(axis=0))
+    if plan.glimpse_step_px > 0 and len(glimpsed):
+        out |= _glimpses(
+            buildings, camera, poses, counts, glimpsed, caster, poly_building, max_distance_m, plan
+        )
+    return out
+
+
+def _glimpses(
+    buildings: Sequence[Building],
+    camera: Camera,
+    poses: Sequence[Pose],
+    counts: np.ndarray,
+    glimpsed: np.ndarray,
+    caster: RayCaster,
+    poly_building: np.ndarray,
+    max_distance_m: float,
+    plan: PlanOptions,
+) -> np.ndarray:
+    """`(F, B)` bool: frame f sees building b (one of `glimpsed`, hit by some of the sparse rays,
+    `counts (F, B)`, but never `plan.min_ray_hits` times in a frame) with at least
+    `plan.min_ray_hits` first hits of rays through every `plan.glimpse_step_px`-th pixel inside
+    the image box of its bounding box's corners, in the frames whose sparse rays hit it. Cheap: a
+    few small, far buildings, and only their own pixels."""
+    out = np.zeros(counts.shape, bool)
+    step = plan.glimpse_step_px
+    all_rays = pixel_rays(camera)
+    W, H = camera.width, camera.height
+    for b in glimpsed:
+        lo, hi = buildings[b].bounds()
+        corners = np.array(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij")).reshape(3, -1).T
+        for f in np.flatnonzero(counts[:, b] > 0):
+            pose = poses[f]
+            uv, depth = pose.project(camera, corners)
+            if np.all(depth > 0) and np.all(np.isfinite(uv)):
+                u0, v0 = np.clip(np.floor(uv.min(axis=0)).astype(int), 0, [W - 1, H - 1])
+                u1, v1 = np.clip(np.ceil(uv.max(axis=0)).astype(int), 0, [W - 1, H - 1])
+            else:  # a corner behind the camera: the whole frame
+                u0, v0, u1, v1 = 0, 0, W - 1, H - 1
+            # the dense grid's pixels inside the box (aligned with the image, not the box)
+            us = np.arange(step // 2, W, step)
+            vs = np.arange(step // 2, H, step)
+            us, vs = us[(us >= u0) & (us <= u1)], vs[(vs >= v0) & (vs <= v1)]
+            if len(us) == 0 or len(vs) == 0:
+                continue
+            rays = all_rays[vs[:, None], us[None, :]].reshape(-1, 3).astype(np.float64)
+            hits = caster.cast(np.broadcast_to(pose.center, rays.shape), rays @ pose.R_world_from_cam.T)
+            ok = (hits.polygon >= 0) & (hits.t <= max_distance_m)
+            out[f, b] = int(np.sum(poly_building[hits.polygon[ok]] == b)) >= plan.min_ray_hits
     return out
 
 

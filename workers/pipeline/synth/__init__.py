@@ -20,7 +20,8 @@ Public API (everything below is importable from `workers.pipeline.synth`):
   `temperature(points (N,3), polygon_index (N,)) -> (N,) float32 K`,
   `surface_temperature(polygon_id_or_index, points (N,3)) -> (N,) K`,
   `ground_temperature(points)`, `sky_temperature(directions)`, `anomalies`.
-- `Renderer(mesh, thermal, camera, ground_z, SensorOptions(), seed)`: `radiance(pose)` (ideal K),
+- `Renderer(mesh, thermal, camera, ground_z, SensorOptions(), seed)` (`ground_z`: a plane's height or a
+  `synth.ground.Ground` terrain, `terrain_ground(buildings, z0)`): `radiance(pose)` (ideal K),
   `frame(pose, index)` (sensor effects), `frame_dn`, `labels(pose)` (polygon index per pixel).
 - `procedural_block(n_buildings, seed) -> list[Building]`; `default_camera()`.
 - `SynthOptions(occluders=OccluderOptions())`: street trees and parked cars the model lacks,

@@ -27,7 +27,7 @@ texture), the trunk `tree_k + 0.5`, the car body `car_k`, the hood `car_hood_k`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -221,10 +221,16 @@ def place_occluders(
     options: OccluderOptions,
     seed: int,
     drive: bool = True,
+    height: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Occluders:
     """Trees and cars along `path_xy` `(K, 2)` (a drive's closed loop; `drive=False`: trees
-    scattered around the path's centre), outside `footprints`; see the module docstring."""
+    scattered around the path's centre), outside `footprints`; see the module docstring. Each
+    stands on the ground `height(xy (N, 2)) -> (N,)` m at its centre (None: on `ground_z`)."""
     o = options
+
+    def base(xy: np.ndarray) -> float:
+        return ground_z if height is None else float(height(np.asarray(xy, float).reshape(1, 2))[0])
+
     rng = rng_for(seed, "occluders")
     path = np.asarray(path_xy, float)[:, :2]
     if len(path) < 2:
@@ -244,7 +250,7 @@ def place_occluders(
             crown = shapely.Point(xy).buffer(o.crown_radius_m[1])
             if _free(crown, fps, placed, o.clearance_m):
                 placed.append(crown)
-                items.append(_tree(b, xy, ground_z, o, rng))
+                items.append(_tree(b, xy, base(xy), o, rng))
         return b.build(items)
     length = line.length
     crowns: list[shapely.Geometry] = []  # trees keep apart from each other by their crowns,
@@ -278,7 +284,7 @@ def place_occluders(
                     if not _free(body, fps, bodies, o.clearance_m):
                         continue
                     bodies.append(body)
-                    items.append(_car(b, xy, float(np.arctan2(tangent[1], tangent[0])), ground_z, o))
+                    items.append(_car(b, xy, float(np.arctan2(tangent[1], tangent[0])), base(xy), o))
                 else:
                     crown = shapely.Point(xy).buffer(o.crown_radius_m[1])
                     trunk = shapely.Point(xy).buffer(0.3)
@@ -288,7 +294,7 @@ def place_occluders(
                         continue
                     crowns.append(crown)
                     bodies.append(trunk)
-                    items.append(_tree(b, xy, ground_z, o, rng))
+                    items.append(_tree(b, xy, base(xy), o, rng))
                 break
             s += spacing * float(rng.uniform(0.6, 1.4))
     return b.build(items)

@@ -16,7 +16,8 @@ sub-pixel rays are cast only for pixels whose 4-neighbour differs by more than
 `adaptive_threshold_k` or sees another surface: inside a smooth patch the mean over the pixel
 equals the centre value to second order, and the edges (10–20 % of a drive's pixels, most of
 a flight's) cost the extra rays. The ground is an analytic plane `z = ground_z` (not in the
-mesh); a ray that hits neither the model nor the ground sees the sky. Optional `Occluders`
+mesh) or a `Ground` terrain (`synth.ground`: a TIN cast as a second geometry of the model's scene,
+the plane beyond it); a ray that hits neither the model nor the ground sees the sky. Optional `Occluders`
 (`synth.occluders`: trees, cars the model lacks) are a second triangle mesh with a temperature
 per triangle; a ray that meets one before the model and the ground sees it (label `OCCLUDER`).
 """
@@ -35,6 +36,7 @@ from workers.pipeline.geometry.manifest import Radiometry
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import SceneMesh, open3d_scene
 from workers.pipeline.synth.common import SynthError, rng_for
+from workers.pipeline.synth.ground import Ground
 from workers.pipeline.synth.occluders import Occluders
 from workers.pipeline.synth.thermal import ThermalScene
 
@@ -107,7 +109,8 @@ class Renderer:
         mesh: the triangulated scene.
         thermal: its temperature field (polygon order = `mesh.polygon_ids`).
         camera: interior orientation.
-        ground_z: ground plane height, world metres.
+        ground_z: the ground: a plane's height (world metres) or a `Ground` (a terrain TIN inside
+            the plane `ground.z`, `synth.ground`).
         sensor: sensor effects.
         seed: seed of the fixed-pattern and temporal noise.
         occluders: trees, cars the model lacks (None: none).
@@ -118,7 +121,7 @@ class Renderer:
         mesh: SceneMesh,
         thermal: ThermalScene,
         camera: Camera,
-        ground_z: float,
+        ground_z: float | Ground,
         sensor: SensorOptions | None = None,
         seed: int = 0,
         occluders: Occluders | None = None,
@@ -126,7 +129,8 @@ class Renderer:
         if tuple(thermal.polygon_ids) != tuple(mesh.polygon_ids):
             raise SynthError("thermal scene and mesh disagree on the polygon order")
         self.mesh, self.thermal, self.camera = mesh, thermal, camera
-        self.ground_z = float(ground_z)
+        self.ground = ground_z if isinstance(ground_z, Ground) else Ground(float(ground_z))
+        self.ground_z = float(self.ground.z)
         self.sensor = sensor or SensorOptions()
         if self.sensor.supersample < 1:
             raise SynthError(f"supersample must be >= 1, got {self.sensor.supersample}")
@@ -168,7 +172,14 @@ class Renderer:
                     o3d.core.Tensor.from_numpy(local),
                     o3d.core.Tensor.from_numpy(np.ascontiguousarray(self.occluders.triangles, np.uint32)),
                 )
-            self._scene = (o3d, scene, occ)
+            ground_id = None
+            if not self.ground.flat:  # the terrain: a second geometry of the same scene
+                local = (self.ground.vertices - self.mesh.origin).astype(np.float32)
+                ground_id = scene.add_triangles(
+                    o3d.core.Tensor.from_numpy(np.ascontiguousarray(local)),
+                    o3d.core.Tensor.from_numpy(np.ascontiguousarray(self.ground.triangles, np.uint32)),
+                )
+            self._scene = (o3d, scene, occ, ground_id)
         return self._scene
 
     def _bearings(self) -> tuple[np.ndarray, np.ndarray]:
@@ -203,6 +214,47 @@ class Renderer:
         return self._rays
 
     # -- ideal images ----------------------------------------------------------------------------
+    def hits(self, C: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """What rays from the projection centre `C` `(3,)` (world, m) along world directions `d`
+        `(N, 3)` float32 (unit) meet first: (ray length `(N,)` float32 m, inf for the sky; label
+        `(N,)` int32: polygon index, `SKY`, `GROUND` or `OCCLUDER`; the occluder triangle hit `(N,)`
+        where the label is `OCCLUDER`, None without occluders). The ground is the terrain's
+        triangles (cast with the model) and, where a ray meets nothing, the plane `ground.z`."""
+        f32 = np.float32
+        n = len(d)
+        label = np.full(n, SKY, np.int32)
+        o3d, scene, occ, ground_id = self._raycasting_scene()
+        rays = np.empty((n, 6), f32)
+        rays[:, :3] = (np.asarray(C, np.float64) - self.mesh.origin).astype(f32)
+        rays[:, 3:] = d
+        if len(self.mesh.triangles) or ground_id is not None:
+            ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+            t = ans["t_hit"].numpy()
+            prim = ans["primitive_ids"].numpy()
+            label = self._tri_label[np.minimum(prim, len(self._tri_label) - 1)]
+            if ground_id is not None:
+                label[ans["geometry_ids"].numpy() == ground_id] = GROUND
+        else:
+            t = np.full(n, np.inf, f32)
+        occ_prim = None
+        if occ is not None:
+            ans = occ.cast_rays(o3d.core.Tensor.from_numpy(rays))
+            t_occ = ans["t_hit"].numpy()
+            hit = np.flatnonzero(t_occ < t)
+            occ_prim = ans["primitive_ids"].numpy()
+            if len(hit):
+                t = t.copy()
+                t[hit] = t_occ[hit]
+                label[hit] = OCCLUDER
+        dz = np.ascontiguousarray(d[:, 2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tg = f32(self.ground_z - C[2]) / dz
+        # with a terrain, the plane lies beyond its outer square: only a ray that met nothing
+        plane = (dz < 0) & (tg > 0) & ((tg < t) if ground_id is None else np.isinf(t))
+        t = np.where(plane, tg, t)
+        label[plane] = GROUND
+        return t, label, occ_prim
+
     def _trace(self, pose: Pose, bearings: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Cast rays `(N, 3)` (camera frame) -> (temperature `(N,)` float32 K, label `(N,)` int32,
         ray length `(N,)` float32 m, inf for the sky)."""
@@ -212,41 +264,19 @@ class Renderer:
         b = np.ascontiguousarray(bearings, dtype=f32)
         n = len(b)
         d = cv2.transform(b.reshape(n, 1, 3), R.astype(f32)).reshape(n, 3)  # world directions
-        label = np.full(n, SKY, np.int32)
-        o3d, scene, occ = self._raycasting_scene()
-        rays = np.empty((n, 6), f32)
-        rays[:, :3] = (C - self.mesh.origin).astype(f32)
-        rays[:, 3:] = d
-        if len(self.mesh.triangles):
-            ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
-            t = ans["t_hit"].numpy()
-            prim = ans["primitive_ids"].numpy()
-            label = self._tri_label[np.minimum(prim, len(self._tri_label) - 1)]
-        else:
-            t = np.full(n, np.inf, f32)
+        t, label, occ_prim = self.hits(C, d)
         T = np.empty(n, f32)
-        if occ is not None:
-            ans = occ.cast_rays(o3d.core.Tensor.from_numpy(rays))
-            t_occ = ans["t_hit"].numpy()
-            hit = np.flatnonzero(t_occ < t)
-            if len(hit):
-                t = t.copy()
-                t[hit] = t_occ[hit]
-                label[hit] = OCCLUDER
-                T[hit] = self.occluders.temperature[ans["primitive_ids"].numpy()[hit]]
+        if occ_prim is not None:
+            io = np.flatnonzero(label == OCCLUDER)
+            T[io] = self.occluders.temperature[occ_prim[io]]
         dx, dy, dz = (np.ascontiguousarray(c) for c in d.T)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tg = f32(self.ground_z - C[2]) / dz
-        ground = (dz < 0) & (tg > 0) & (tg < t)
-        t = np.where(ground, tg, t)
-        label[ground] = GROUND
         cx, cy, cz = (C - self.thermal.origin).astype(f32)
         on = np.flatnonzero(label >= 0)
         if len(on):
             ton = t[on]
             x, y, z = cx + ton * dx[on], cy + ton * dy[on], cz + ton * dz[on]
             T[on] = _parallel_temperature(self.thermal, x, y, z, label[on])
-        ig = np.flatnonzero(ground)
+        ig = np.flatnonzero(label == GROUND)
         if len(ig):
             tgr = t[ig]
             T[ig] = self.thermal.ground_temperature_local(

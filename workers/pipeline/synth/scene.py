@@ -24,6 +24,7 @@ from workers.pipeline.geometry.manifest import FrameRecord, GroundControl, Seque
 from workers.pipeline.geometry.raycast import SceneMesh, build_scene_mesh
 from workers.pipeline.synth.common import SynthError, rng_for
 from workers.pipeline.synth.errors import ErrorOptions, InsSimulation, simulate_ins
+from workers.pipeline.synth.ground import Ground, terrain_ground
 from workers.pipeline.synth.occluders import OccluderOptions, Occluders, place_occluders
 from workers.pipeline.synth.render import RADIOMETRY, Renderer, SensorOptions, default_camera
 from workers.pipeline.synth.shapes import footprint
@@ -69,6 +70,9 @@ class SynthOptions:
     crs: str | None = None  # manifest crs; None: "EPSG:n" of the buildings' srsName, else "model"
     scene_radius_m: float | None = None  # render only buildings this close to the path; None: auto
     ground_z: float | None = None  # ground plane height; None: median base of the cluster
+    # the ground follows the rendered buildings' feet (a TIN, `synth.ground`; the plane itself when
+    # every foot is at one height); False, or a given `ground_z`: the plane `ground_z` everywhere
+    terrain: bool = True
     n_gcps: int = 0  # ground control points (cluster building corners) with observations
     gcp_pixel_sigma: float = 0.3  # noise of the GCP image observations, pixels
     model_path: str | None = None  # recorded in the truth
@@ -231,7 +235,7 @@ def _trajectory(
 
 
 def _occluders(
-    traj: PathTrajectory | LineTrajectory, scene: Sequence[Building], ground_z: float, o: SynthOptions
+    traj: PathTrajectory | LineTrajectory, scene: Sequence[Building], ground: Ground, o: SynthOptions
 ) -> Occluders | None:
     """Trees and cars the model lacks (`o.occluders`; None when not asked for): along a drive's
     loop or a walk's line, scattered around a flight's loop."""
@@ -243,15 +247,19 @@ def _occluders(
         length = traj.speed * o.frame_interval_s * max(o.n_frames - 1, 1)
         path = np.stack([traj.start[:2], traj.start[:2] + length * traj.direction[:2]])
     fps = [footprint(b) for b in scene]
-    return place_occluders(path, fps, ground_z, o.occluders, o.seed, drive=o.platform != "flight")
+    height = None if ground.flat else ground.height
+    drive = o.platform != "flight"
+    return place_occluders(path, fps, ground.z, o.occluders, o.seed, drive=drive, height=height)
 
 
 def synthesize(buildings: Sequence[Building], options: SynthOptions | None = None) -> SynthResult:
     """Build a synthetic sequence of `buildings` (model CRS, metres).
 
     Steps: choose the cluster (`options.buildings`), the ground plane (median base of the
-    cluster), the closed drive/flight loop and its `PathTrajectory`; keep the buildings near the
-    loop as the rendered scene (`SceneMesh`, `ThermalScene` from `options.seed`); stamp
+    cluster; the trajectory's heights count from it), the closed drive/flight loop and its
+    `PathTrajectory`; keep the buildings near the loop as the rendered scene (`SceneMesh`,
+    `ThermalScene` from `options.seed`) on its ground (`terrain_ground`: a TIN through the
+    scene's wall feet, unless `options.terrain` is off or `options.ground_z` given); stamp
     `n_frames` frames every `frame_interval_s` from `t0`; run the GNSS/INS error model (recorded
     INS at the stamps, true poses at `stamp − δ` with the true mounting); add GCPs if asked.
     Nothing is rendered here: `result.frames` renders on access. Raises `SynthError` naming the
@@ -276,8 +284,10 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
     mesh = build_scene_mesh(scene)
     thermal = ThermalScene(scene, mesh.polygon_ids, seed=o.seed, options=o.thermal)
     camera = o.camera or default_camera()
-    occluders = _occluders(traj, scene, float(ground_z), o)
-    renderer = Renderer(mesh, thermal, camera, ground_z, o.sensor, seed=o.seed, occluders=occluders)
+    terrain = o.terrain and o.ground_z is None
+    ground = terrain_ground(scene, float(ground_z)) if terrain else Ground(float(ground_z))
+    occluders = _occluders(traj, scene, ground, o)
+    renderer = Renderer(mesh, thermal, camera, ground, o.sensor, seed=o.seed, occluders=occluders)
 
     times = o.t0 + o.frame_interval_s * np.arange(o.n_frames)
     errors = o.errors
@@ -338,6 +348,7 @@ def synthesize(buildings: Sequence[Building], options: SynthOptions | None = Non
         anomalies=thermal.anomalies,
         windows=thermal.windows,
         occluders=() if occluders is None else occluders.items,
+        ground=None if ground.flat else ground,
         thermal=o.thermal,
         sensor=o.sensor,
         errors=asdict(errors),

@@ -2,7 +2,7 @@
 `docs/synth-truth.md`.
 
 In: what `synthesize` knows (true poses, mounting, delay, planted leaks with their half-maximum
-outlines, the walls' window rectangles, options). Out: a
+outlines, the walls' window rectangles, the terrain, options). Out: a
 `SynthTruth` and its JSON form (`to_dict` / `from_dict`; files via `db.synth_files`). Poses are
 `R_wc` (camera to world, rows) and `C` (world, model CRS, metres).
 """
@@ -21,6 +21,7 @@ from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.options import OptionsError, options_from_dict
 from workers.pipeline.synth.anomaly import Anomaly, Window
 from workers.pipeline.synth.common import SynthError
+from workers.pipeline.synth.ground import Ground
 from workers.pipeline.synth.render import SensorOptions
 from workers.pipeline.synth.thermal import ThermalOptions, ThermalScene
 
@@ -55,7 +56,8 @@ class SynthTruth:
         procedural: `{"n_buildings", "seed"}` when the buildings came from `procedural_block`.
         buildings: ids of all rendered buildings (the scene).
         cluster: ids of the buildings the trajectory goes around.
-        ground_z: height of the ground plane, metres.
+        ground_z: height of the ground plane, metres (with a terrain: beyond its outer square,
+            and the base of the trajectory's heights).
         frame_times: `(F,)` stamps as in the manifest, seconds.
         exposure_times: `(F,)` true exposure times `frame_times − time_delay_s`.
         poses: true camera pose per frame (`R_world_from_cam`, `center`).
@@ -73,6 +75,8 @@ class SynthTruth:
             empty in truth files written before windows were recorded).
         occluders: the trees and cars rendered that the model lacks (`synth.occluders`: kind,
             centre, size); empty without `SynthOptions.occluders`.
+        ground: the terrain (`synth.ground.Ground`: a TIN through the buildings' feet inside the
+            plane `ground_z`); None: the plane `ground_z` everywhere.
     """
 
     seed: int
@@ -98,6 +102,13 @@ class SynthTruth:
     package: str | None = None
     windows: tuple[Window, ...] = ()
     occluders: tuple[dict, ...] = ()
+    ground: Ground | None = None
+
+    def ground_height(self, xy: np.ndarray) -> np.ndarray:
+        """Height `(N,)` m of the scene's ground under world points `xy` `(N, 2)` (or `(N, 3)`)."""
+        if self.ground is None:
+            return np.full(len(xy), float(self.ground_z))
+        return self.ground.height(xy)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object of the truth file."""
@@ -133,6 +144,7 @@ class SynthTruth:
             "thermal": asdict(self.thermal),
             "sensor": asdict(self.sensor),
             "errors": dict(self.errors),
+            **({} if self.ground is None or self.ground.flat else {"ground": self.ground.to_dict()}),
         }
 
     @classmethod
@@ -166,6 +178,7 @@ class SynthTruth:
                 package=d.get("package"),
                 windows=tuple(Window.from_dict(w) for w in d.get("windows") or []),
                 occluders=tuple(dict(o) for o in d.get("occluders") or []),
+                ground=Ground.from_dict(d["ground"]) if d.get("ground") else None,
             )
         except (KeyError, TypeError, ValueError, OptionsError) as exc:
             raise SynthError(f"truth: missing or bad field ({exc})") from exc

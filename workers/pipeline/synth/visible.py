@@ -27,7 +27,7 @@ from workers.pipeline.geometry.georef import body_from_cam, ins_from_camera
 from workers.pipeline.geometry.manifest import Accuracy, FrameRecord, Mounting, SecondCamera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.synth.common import SynthError, rng_for
-from workers.pipeline.synth.render import OCCLUDER, SKY, Renderer
+from workers.pipeline.synth.render import GROUND, OCCLUDER, Renderer
 from workers.pipeline.synth.thermal import _gather_rows
 
 F32 = np.float32
@@ -182,28 +182,10 @@ class RgbRenderer:
         cam, tir = self.camera, self.tir
         R = pose.R_world_from_cam.astype(F32)
         d = self._rays() @ R.T  # (N, 3) world directions
-        o3d, scene, occ = tir._raycasting_scene()
         n = len(d)
-        t = np.full(n, np.inf, F32)
-        label = np.full(n, SKY, np.int32)
-        rays = np.empty((n, 6), F32)
-        rays[:, :3] = (pose.center - tir.mesh.origin).astype(F32)
-        rays[:, 3:] = d
-        if len(tir.mesh.triangles):
-            ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
-            t = ans["t_hit"].numpy()
-            label = tir._tri_label[np.minimum(ans["primitive_ids"].numpy(), len(tir._tri_label) - 1)]
-        occluded = np.zeros(n, bool)
-        if occ is not None:  # trees and cars the model lacks: foliage green, car grey
-            ans = occ.cast_rays(o3d.core.Tensor.from_numpy(rays))
-            t_occ = ans["t_hit"].numpy()
-            occluded = t_occ < t
-            t = np.where(occluded, t_occ, t)
-            label = np.where(occluded, OCCLUDER, label)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tg = F32(tir.ground_z - pose.center[2]) / d[:, 2]
-        ground = (d[:, 2] < 0) & (tg > 0) & (tg < t)
-        t = np.where(ground, tg, t)
+        t, label, _ = tir.hits(pose.center, d)
+        occluded = label == OCCLUDER
+        ground = label == GROUND
         X = (pose.center - tir.thermal.origin).astype(F32) + t[:, None] * d  # thermal-local metres
         out = np.empty((n, 3), F32)
         sky = ~ground & (label < 0)
