@@ -13,6 +13,7 @@ from workers.pipeline.reconstruction.dense_stereo import (
     pair_points,
     select_pairs,
     to_gray8,
+    views,
 )
 from workers.pipeline.reconstruction.icp_register import IcpOptions, apply_transform, register_clouds
 from workers.pipeline.reconstruction.rgb_method import corrected_poses
@@ -95,6 +96,24 @@ def test_depth_consistency_keeps_agreeing_points() -> None:
     kept = consistent(X, Y, cam, 2, 0.02)
     assert len(kept) == len(X) - 100
     assert np.allclose(kept[:, 2], 10.05)
+
+
+def test_views_drop_points_no_other_pair_confirms() -> None:
+    """A wall reconstructed by five pairs (2 cm noise each) and, in one pair, false matches
+    scattered 1-30 m behind it: every wall point is seen by several pairs, every false one by
+    its own pair alone."""
+    rng = np.random.default_rng(3)
+    k = 8000
+    wall = [
+        np.column_stack([rng.uniform(0, 10, k), 0.02 * rng.standard_normal(k), rng.uniform(0, 5, k)])
+        for _ in range(5)
+    ]
+    false = np.column_stack([rng.uniform(0, 10, 300), rng.uniform(1, 30, 300), rng.uniform(0, 5, 300)])
+    P = np.concatenate([*wall, false]) + np.array([100.0, 50.0, 0.0])
+    pair = np.repeat(np.arange(6), [k] * 5 + [300])
+    n = views(P - P.mean(axis=0), pair, 0.1)
+    assert np.all(n[: 5 * k] >= 3)
+    assert np.mean(n[5 * k :] == 1) > 0.97
 
 
 @pytest.fixture(scope="module")

@@ -70,6 +70,8 @@ class EdgePlacement:
     support_after: float
     frames: int
     kept: bool
+    offset_before_px: float = float("nan")
+    offset_after_px: float = float("nan")
 
     def to_dict(self) -> dict:
         """The `report.json` figures."""
@@ -77,6 +79,8 @@ class EdgePlacement:
             "frames": self.frames,
             "support_before": round(self.support_before, 3),
             "support_after": round(self.support_after, 3),
+            "offset_before_px": round(self.offset_before_px, 3),
+            "offset_after_px": round(self.offset_after_px, 3),
             "rotation_deg": [round(float(np.degrees(x)), 3) for x in self.q[:3]],
             "shift_m": [round(float(x), 3) for x in self.q[3:6]],
             "scale": round(self.correction.scale, 4),
@@ -135,7 +139,7 @@ def fit_on_edges(
         return None
     c = np.asarray(pivot, dtype=np.float64)
     q = np.zeros(7)
-    support0 = _support(camera, caster, wfs, eo, fo, poses, feats, Similarity.identity())
+    support0, cost0 = _support(camera, caster, wfs, eo, fo, poses, feats, Similarity.identity())
     q[3:6] = coarse_shift(camera, caster, wfs, eo, fo, poses, images, sorted(feats), prior_info, options)
     radius = options.edge_radius_start_px
     N = prior_info.copy()
@@ -160,9 +164,13 @@ def fit_on_edges(
         q = q + step
         radius = max(fo.edge_radius_min_px, radius * options.edge_radius_decay)
     S = similarity_about(q, c)
-    support1 = _support(camera, caster, wfs, eo, fo, poses, feats, S)
-    kept = bool(np.all(np.isfinite(q)) and support1 >= support0 + options.edge_min_gain)
-    return EdgePlacement(S, q, np.linalg.inv(N), support0, support1, len(feats), kept)
+    support1, cost1 = _support(camera, caster, wfs, eo, fo, poses, feats, S)
+    better = support1 >= support0 + options.edge_min_gain or (
+        support1 >= support0 - options.edge_max_support_loss
+        and cost1 <= cost0 * (1.0 - options.edge_min_offset_gain)
+    )
+    kept = bool(np.all(np.isfinite(q)) and better)
+    return EdgePlacement(S, q, np.linalg.inv(N), support0, support1, len(feats), kept, cost0, cost1)
 
 
 def coarse_shift(
@@ -228,10 +236,14 @@ def _support(
     poses: Mapping[int, Pose],
     feats: Mapping[int, ImageFeatures],
     S: Similarity,
-) -> float:
-    """Weighted share of the frames' visible edge samples within `support_px` of an image edge
-    (final search radius) with the poses moved by `S`."""
-    hit = tot = 0.0
+) -> tuple[float, float]:
+    """(support: weighted share of the frames' visible edge samples within `support_px` of an
+    image edge, at the final search radius; offset: the weighted mean distance (px, at most
+    that radius) of the samples that found an edge) with the poses moved by `S`. The support
+    counts samples within 1.5 px and misses sub-pixel moves the offset sees (bench seed 1,
+    homogeneous facades: a block 0.04 m low, support 0.766 -> 0.759 when corrected, offset
+    0.33 -> 0.29 px)."""
+    hit = tot = cost = hits = 0.0
     for f, ft in feats.items():
         p = S.pose(poses[f])
         vis = wfs.visible(f, p, caster, eo, fo.max_samples)
@@ -242,5 +254,9 @@ def _support(
             np.zeros((6, 6)), fo,
         )
         hit += float(np.sum(vis.weight * (found & (np.abs(off) <= fo.support_px))))
+        r = fo.edge_radius_min_px
+        w = vis.weight * found
+        cost += float(np.sum(w * np.minimum(np.abs(np.where(found, off, 0.0)), r)))
         tot += float(np.sum(vis.weight))
-    return hit / tot if tot > 0 else 0.0
+        hits += float(np.sum(w))
+    return (hit / tot if tot > 0 else 0.0), (cost / hits if hits > 0 else float("inf"))
