@@ -295,7 +295,8 @@ def frame_edges(camera: Camera, wireframe: Wireframe | FrameWireframes, raycaste
                 feature_options: FeatureOptions) -> dict[int, FrameEdges]:
     """Image gradients in a box `margin` px around the projected wireframe, and the visible
     samples, of every frame that sees at least `options.min_samples` of them (`wireframe`: the
-    scene's, or its parts per frame)."""
+    scene's, or its parts per frame). The features carry no strong-edge map (`extract_features`
+    with `strong_edges=False`): the edge searches use the gradient only."""
     out = {}
     for f in frames:
         if isinstance(wireframe, FrameWireframes):
@@ -308,7 +309,7 @@ def frame_edges(camera: Camera, wireframe: Wireframe | FrameWireframes, raycaste
         if roi is None:
             continue
         try:
-            feats = extract_features(images[f], feature_options, roi, points=False)
+            feats = extract_features(images[f], feature_options, roi, points=False, strong_edges=False)
         except FeatureError:
             continue
         out[f] = FrameEdges(feats, vis)

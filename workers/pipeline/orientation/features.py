@@ -295,12 +295,16 @@ def extract_features(
     options: FeatureOptions = FeatureOptions(),
     roi: tuple[int, int, int, int] | None = None,
     points: bool = True,
+    strong_edges: bool = True,
 ) -> ImageFeatures:
     """All features of a frame `(H, W)` float32 physical values within `roi` `(u0, v0, u1, v1)`.
 
     The ROI is clipped to the frame; contrast normalisation uses the ROI's own percentiles.
     Returned coordinates are full-frame pixels. With `points=False` the point features (Förstner,
-    LSD, intersections) are left empty; `with_points` adds them later for a smaller box.
+    LSD, intersections) are left empty; `with_points` adds them later for a smaller box. With
+    `strong_edges=False` the strong-edge map and its distance transforms (the coarse search's) are
+    left empty (`edges` `(0, 0)`, `dt` `{}`): the edge searches along projected model edges need
+    the gradient only (`edge_observations.frame_edges`; a tenth of a bundle window's features).
     """
     img = np.asarray(image)
     if img.ndim != 2:
@@ -317,13 +321,17 @@ def extract_features(
     st = options.percentile_stride
     mag = np.hypot(gx[::st, ::st], gy[::st, ::st])
     grad_ref = float(np.percentile(mag, options.gradient_ref_percentile)) or 1e-6
+    empty = np.zeros((0, 2))
+    if not strong_edges:
+        return ImageFeatures(forstner=empty, forstner_w=np.zeros(0), segments=np.zeros((0, 4)),
+                             intersections=empty, roi=(u0, v0, u1, v1), gx=gx, gy=gy, grad_ref=grad_ref,
+                             dt={}, edges=np.zeros((0, 0), np.uint8), norm=norm)
     # strong-edge map: Canny on the 8-bit smoothed image, thresholds relative to the ROI contrast
     img8 = np.clip(_gauss(norm, options.smooth_sigma) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     sobel_ref = grad_ref * 255.0 * 8.0  # Canny's Sobel aperture-3 magnitude of the same step
     edges = cv2.Canny(
         img8, options.edge_low_rel * sobel_ref, options.edge_high_rel * sobel_ref, L2gradient=True
     )
-    empty = np.zeros((0, 2))
     feats = ImageFeatures(
         forstner=empty,
         forstner_w=np.zeros(0),
