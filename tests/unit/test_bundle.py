@@ -245,3 +245,21 @@ def test_far_points_seen_from_nearly_one_direction_neither_break_nor_hold_the_bl
     assert res.converged and pos < 0.03 and rot < 0.1, (pos, rot)
     used = bundle_module._tied(np.array([True, True, False, True]), np.array([0, 1, 1, 2]), 3, 2)
     assert used.tolist() == [False, False, False, False]
+
+
+def test_a_step_is_measured_in_each_frames_own_sigma() -> None:
+    """`_largest_sigma_step`: a frame stepping one σ of its own block (the other frames and the
+    common correction held) measures 1, whatever its neighbours' blocks and the coupling."""
+    rng = np.random.default_rng(3)
+    n = 4
+    A = rng.normal(size=(6 * n + 6, 6 * n + 6))
+    S = A @ A.T + 6 * n * np.eye(6 * n + 6)
+    steps = np.zeros((n, 6))
+    D = S[12:18, 12:18]  # frame 2's block
+    w, V = np.linalg.eigh(D)
+    steps[2] = V[:, 0] / np.sqrt(w[0])  # one σ along its weakest direction
+    w1, V1 = np.linalg.eigh(S[6:12, 6:12])
+    steps[1] = 0.5 * V1[:, -1] / np.sqrt(w1[-1])  # half a σ of frame 1, along its strongest direction
+    assert abs(bundle_module._largest_sigma_step(S, steps) - 1.0) < 1e-9
+    steps[2] *= 0.1
+    assert abs(bundle_module._largest_sigma_step(S, steps) - 0.5) < 1e-9

@@ -191,10 +191,13 @@ def _adjust(
             common = common + dx[6 * n:]
         if len(Wt):
             X = X + _point_steps(V_inv, Wt, bt, steps[f_obs[use]], t_obs[use])
-        # converged: steps below `converged_m` (rotations as metres at 10 m), the edge search at its
-        # final radius; then the outliers go and the polish runs to convergence
+        # converged: steps below `converged_m` (rotations as metres at 10 m) or below
+        # `converged_sigma` of every frame's own σ, the edge search at its final radius; then the
+        # outliers go and the polish runs to convergence
         k_phase += 1
-        done = _largest_move(dx) < options.converged_m and R_e <= fit_options.edge_radius_min_px + 1e-9
+        done = R_e <= fit_options.edge_radius_min_px + 1e-9 and (
+            _largest_move(dx) < options.converged_m or _largest_sigma_step(S, steps) < options.converged_sigma
+        )
         if polish and (done or k_phase >= options.polish_iterations):
             break
         if not polish and (done or k_phase >= options.iterations):
@@ -260,6 +263,18 @@ def _largest_move(dx: np.ndarray) -> float:
     blocks = dx.reshape(-1, 6)
     return max(float(np.max(np.linalg.norm(blocks[:, 3:], axis=1))),
                10.0 * float(np.max(np.linalg.norm(blocks[:, :3], axis=1))))
+
+
+def _largest_sigma_step(S: np.ndarray, steps: np.ndarray) -> float:
+    """The largest step of a frame, `steps` `(n, 6)`, in units of its own σ: `sqrt(δᵀ S_ff δ)`
+    with `S_ff` the frame's `(6, 6)` diagonal block of the reduced normal matrix `S` (its
+    information with the other frames and the common correction held)."""
+    n = len(steps)
+    if n == 0:
+        return 0.0
+    idx = np.arange(n)[:, None] * 6 + np.arange(6)[None, :]
+    D = S[idx[:, :, None], idx[:, None, :]]
+    return float(np.sqrt(max(float(np.max(np.einsum("ni,nij,nj->n", steps, D, steps))), 0.0)))
 
 
 def _add_edge_equations(

@@ -295,7 +295,8 @@ def frame_edges(camera: Camera, wireframe: Wireframe | FrameWireframes, raycaste
                 feature_options: FeatureOptions) -> dict[int, FrameEdges]:
     """Image gradients in a box `margin` px around the projected wireframe, and the visible
     samples, of every frame that sees at least `options.min_samples` of them (`wireframe`: the
-    scene's, or its parts per frame)."""
+    scene's, or its parts per frame). The edge searches use the gradient only: the features'
+    strong-edge map (`ImageFeatures.edges`) is built on first use, so never here."""
     out = {}
     for f in frames:
         if isinstance(wireframe, FrameWireframes):

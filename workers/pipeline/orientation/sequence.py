@@ -168,8 +168,10 @@ def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list
     [(1, 3)]
     >>> [windows(np.arange(n) * 0.1, SequenceOrientationOptions()) for n in (60, 100)]
     [[(0, 60)], [(0, 70), (30, 100)]]
-    >>> len(windows(np.arange(300) * 0.1, SequenceOrientationOptions()))  # windows of 120 / 30
-    3
+    >>> windows(np.arange(300) * 0.1, SequenceOrientationOptions())  # two windows of 165 / 30
+    [(0, 165), (135, 300)]
+    >>> len(windows(np.arange(3000) * 0.1, SequenceOrientationOptions()))
+    22
     """
     t = np.asarray(times, dtype=np.float64)
     if len(t) == 0:

@@ -110,6 +110,14 @@ class Wireframe:
         np.add.at(acc, self.edges[:, 1], self.edge_outward)
         return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-12)
 
+    @cached_property
+    def edge_vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices the edges use, `(U,)` indices into `vertices`, and the edges on them
+        `(E, 2)` (indices into the first): a part of a scene wireframe (`cull_wireframe`) keeps
+        every vertex of the scene, its edges use few."""
+        used, inv = np.unique(self.edges, return_inverse=True)
+        return used, inv.reshape(self.edges.shape)
+
 
 @dataclass(frozen=True, eq=False)
 class VisibleWireframe:
@@ -316,10 +324,12 @@ def visible_wireframe(
     """
     V, Ed = wireframe.vertices, wireframe.edges
     a, b = V[Ed[:, 0]], V[Ed[:, 1]]
-    # every vertex projected once (point by point: the same as projecting the edges' ends)
-    uv_v, z_v = pose.project(camera, V)
-    uv_a, z_a = uv_v[Ed[:, 0]], z_v[Ed[:, 0]]
-    uv_b, z_b = uv_v[Ed[:, 1]], z_v[Ed[:, 1]]
+    # every vertex of an edge projected once (point by point: the same as projecting the edges'
+    # ends; a scene part's other vertices are not projected)
+    used, on_used = wireframe.edge_vertices
+    uv_v, z_v = pose.project(camera, V[used])
+    uv_a, z_a = uv_v[on_used[:, 0]], z_v[on_used[:, 0]]
+    uv_b, z_b = uv_v[on_used[:, 1]], z_v[on_used[:, 1]]
     len_px = np.linalg.norm(np.nan_to_num(uv_b - uv_a, nan=0.0), axis=1)
     n = np.clip(
         np.ceil(len_px / options.sample_spacing_px),
