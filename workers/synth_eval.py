@@ -23,13 +23,20 @@ from workers.pipeline.texture.quality import summarize, surface_errors, truth_ra
 from workers.pipeline.texture.texel import TexelGrid, TexelOptions, texel_grid
 
 
-def below_ground(grid: TexelGrid, ground_z: float | Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+def below_ground(
+    grid: TexelGrid, ground_z: float | Callable[[np.ndarray], np.ndarray], top: float = np.inf
+) -> np.ndarray:
     """`(H, W)` bool: texel centres below the synthetic ground (hidden in that world): the plane
-    `ground_z`, or a height function `xy (N, 2) -> (N,)` m (`SynthTruth.ground_height`)."""
+    `ground_z`, or a height function `xy (N, 2) -> (N,)` m (`SynthTruth.ground_height`) whose
+    values never exceed `top` m (`Ground.top`: centres above it are not looked up)."""
     r, c = np.indices(grid.shape)
     X = grid.centres(r.ravel(), c.ravel())
-    h = ground_z(X[:, :2]) if callable(ground_z) else np.full(len(X), ground_z)
-    return (X[:, 2] < h).reshape(grid.shape)
+    if not callable(ground_z):
+        return (X[:, 2] < ground_z).reshape(grid.shape)
+    out = np.zeros(len(X), bool)
+    low = np.flatnonzero(X[:, 2] < top)
+    out[low] = X[low, 2] < ground_z(X[low, :2])
+    return out.reshape(grid.shape)
 
 
 def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
@@ -41,6 +48,7 @@ def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
     got = {s.polygon.id: s for s in iter_surface_textures(out, res.manifest.radiometry)}
     caster = RayCaster(res.mesh)
     gz = res.truth.ground_z if res.truth.ground is None else res.truth.ground_height
+    top = np.inf if res.truth.ground is None else res.truth.ground.top
     opts = TexelOptions(resolution_px_per_m=float(rep["resolution_px_per_m"]))
     per_surface = surface_resolutions(rep)
     errors = []
@@ -53,7 +61,7 @@ def texture_accuracy(out_dir: str | Path, res: SynthResult) -> dict[str, float]:
                 grid = texel_grid(poly, part.id, replace(opts, resolution_px_per_m=r))
                 if grid is None:
                     continue
-                below = below_ground(grid, gz)
+                below = below_ground(grid, gz, top)
                 if callable(gz):  # a terrain: its texels below it are never seen (as the plane's)
                     vis = visible_texels(grid, res.manifest.camera, res.truth.poses, caster) & ~below
                 else:

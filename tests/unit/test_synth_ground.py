@@ -64,6 +64,30 @@ def test_terrain_meets_every_wall_foot_on_the_nrw_tile() -> None:
     assert np.allclose(g.height(np.array([lo - 1.0, lo + np.array([-5.0, 3.0])])), 35.0)
 
 
+def test_nothing_is_above_the_terrains_top_and_below_ground_skips_only_those() -> None:
+    """`Ground.top` bounds every height, so `synth_eval.below_ground` looks up only the texel
+    centres under it and gives what the full lookup gives; no points, no heights."""
+    from workers.pipeline.texture.texel import TexelOptions, texel_grid
+    from workers.synth_eval import below_ground
+
+    _, buildings = read_model(DATA / "nrw-tile-5659-citygml1-lod2.gml")
+    g = terrain_ground(buildings, 35.0)
+    lo, hi = g.vertices[:, :2].min(axis=0), g.vertices[:, :2].max(axis=0)
+    xy = np.random.default_rng(3).uniform(lo - 5.0, hi + 5.0, (20000, 2))
+    assert g.height(xy).max() <= g.top and g.top > 35.0
+    assert g.height(np.zeros((0, 2))).shape == (0,)
+    walls = [(b, p) for b in buildings for p in b.polygons if p.surface_class == "WallSurface"][:40]
+    compared = 0
+    for b, poly in walls:
+        grid = texel_grid(poly, b.id, TexelOptions(resolution_px_per_m=5.0))
+        if grid is None:
+            continue
+        full = below_ground(grid, g.height)
+        assert np.array_equal(below_ground(grid, g.height, g.top), full)
+        compared += int(full.any())
+    assert compared > 0  # some walls do reach below the terrain's TIN
+
+
 def test_flat_scenes_keep_their_plane_bit_for_bit() -> None:
     """Every base at one height: the ground is the plane, frames identical with the terrain off."""
     blds = procedural_block(6, seed=2)

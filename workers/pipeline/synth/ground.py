@@ -51,6 +51,11 @@ class Ground:
         """True when the ground is the plane `z = self.z` everywhere."""
         return len(self.triangles) == 0
 
+    @property
+    def top(self) -> float:
+        """The highest ground height anywhere, m: no point above it is below the ground."""
+        return float(max(self.z, self.vertices[:, 2].max())) if len(self.vertices) else float(self.z)
+
     @cached_property
     def _locator(self) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
         """A bucket grid over the TIN: (grid origin `(2,)`, cell size m, grid shape `(2,)`,
@@ -80,10 +85,10 @@ class Ground:
     def height(self, xy: np.ndarray) -> np.ndarray:
         """Ground height `(N,)` float64 m under world points `xy` `(N, 2)` (or `(N, 3)`, z ignored):
         on the TIN's triangles (barycentric), `z` outside them."""
-        P = np.asarray(xy, dtype=np.float64).reshape(len(xy), -1)[:, :2]
-        out = np.full(len(P), self.z)
-        if self.flat or len(P) == 0:
+        out = np.full(len(xy), self.z)
+        if self.flat or len(xy) == 0:
             return out
+        P = np.asarray(xy, dtype=np.float64).reshape(len(xy), -1)[:, :2]
         lo, cell, shape, start, tris = self._locator
         g = np.floor((P - lo) / cell).astype(np.int64)
         idx = np.flatnonzero(np.all((g >= 0) & (g < shape), axis=1))
@@ -92,9 +97,13 @@ class Ground:
         c = g[idx, 0] * shape[1] + g[idx, 1]
         first, count = start[c], start[c + 1] - start[c]
         V, T = self.vertices, self.triangles
-        todo = np.ones(len(idx), bool)
-        for k in range(int(count.max())):
-            m = np.flatnonzero(todo & (count > k))
+        # each point tries its cell's triangles in order until one holds it; only the points not
+        # yet placed go on to the next round (a cell under the outer square's long triangles holds
+        # many, so rounds over every point cost O(points x triangles per cell))
+        m = np.arange(len(idx))
+        k = 0
+        while len(m):
+            m = m[count[m] > k]
             if len(m) == 0:
                 break
             t = T[tris[first[m] + k]]
@@ -108,7 +117,8 @@ class Ground:
             hit = (det != 0) & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
             h = m[hit]
             out[idx[h]] = a[hit, 2] + u[hit] * (b[hit, 2] - a[hit, 2]) + v[hit] * (cc[hit, 2] - a[hit, 2])
-            todo[h] = False
+            m = m[~hit]
+            k += 1
         return out
 
     def to_dict(self) -> dict[str, Any]:
