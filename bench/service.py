@@ -54,12 +54,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import shutil
 import signal
 import sys
 import tempfile
-import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -67,10 +65,10 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.service_polls import pollers
 from bench.service_stack import (
     MiB,
     Stack,
@@ -301,57 +299,6 @@ def warm_up(stack: Stack, base: dict, buildings: list[str], worker: str) -> dict
 
 
 # -- pollers --------------------------------------------------------------------------------------
-def pollers(stack: Stack, job: str, n: int, requests: int, interval_s: float) -> dict:
-    """`n` threads, each with its own client, `requests` GETs of the job's status each; every
-    `interval_s` seconds per poller (0: back to back), the pollers' phases spread at random."""
-    lat: list[list[float]] = [[] for _ in range(n)]
-    errors: list[str] = []
-    barrier = threading.Barrier(n + 1)
-
-    def poll(k: int) -> None:
-        rnd = random.Random(k)
-        with stack.client(timeout=60) as c:
-            c.get("/conformance")  # the connection is made before the clock starts
-            barrier.wait()
-            start = time.perf_counter() + rnd.uniform(0, interval_s)
-            for i in range(requests):
-                pause = start + i * interval_s - time.perf_counter()
-                if pause > 0:
-                    time.sleep(pause)
-                t = time.perf_counter()
-                try:
-                    r = c.get(f"/jobs/{job}")
-                    ok = r.status_code == 200
-                except httpx.HTTPError as exc:
-                    ok, r = False, exc  # type: ignore[assignment]
-                lat[k].append(time.perf_counter() - t)
-                if not ok:
-                    errors.append(str(getattr(r, "status_code", r)))
-
-    threads = [threading.Thread(target=poll, args=(k,), daemon=True) for k in range(n)]
-    for t in threads:
-        t.start()
-    barrier.wait()
-    t0 = time.perf_counter()
-    for t in threads:
-        t.join()
-    wall = time.perf_counter() - t0
-    ms = np.array([x for per in lat for x in per]) * 1000.0
-    return {
-        "pollers": n,
-        "requests_each": requests,
-        "interval_s": interval_s,
-        "requests": int(ms.size),
-        "errors": len(errors),
-        "wall_s": round(wall, 2),
-        "requests_per_s": round(ms.size / wall, 1),
-        "p50_ms": round(float(np.percentile(ms, 50)), 1),
-        "p95_ms": round(float(np.percentile(ms, 95)), 1),
-        "p99_ms": round(float(np.percentile(ms, 99)), 1),
-        "max_ms": round(float(ms.max()), 1),
-    }
-
-
 def poll_under_load(stack: Stack, inputs: dict, n: int, requests: int, interval_s: float) -> dict:
     """A job on the workers; once it runs, paced pollers, then unpaced ones; then its end."""
     out: dict = {}
