@@ -21,6 +21,7 @@ exterior, 1.. for the interiors); `_g` is appended until the id is unused in the
 from __future__ import annotations
 
 import logging
+import os
 import re
 from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass, field
@@ -48,6 +49,15 @@ from db.citygml.names import (
 from workers.pipeline.geometry.citymodel import Building, Polygon, Ring, SurfaceData
 
 log = logging.getLogger(__name__)
+
+try:  # the compiled geometry walk (setup.py builds it); without it the Python walk below is used
+    from db.citygml import _walk  # type: ignore[attr-defined]
+except ImportError:  # pragma: no cover - depends on the install
+    _walk = None
+if _walk is not None and not _walk.selftest():  # built against other lxml headers: not used
+    _walk = None
+#: False when the compiled walk is not built or `CITYTHERM_PY_WALK=1` turns it off (A/B, tests)
+COMPILED_WALK = _walk is not None and os.environ.get("CITYTHERM_PY_WALK", "") != "1"
 
 _GEOM_SUFFIXES = ("Solid", "MultiSurface", "Geometry", "FootPrint", "RoofEdge")
 _SKIP_GEOM = frozenset({"LineString", "MultiCurve", "Curve", "CompositeCurve", "Point", "MultiPoint"})
@@ -514,6 +524,21 @@ class _BuildingReader:
                     t.solid_reversed = sign < 0
 
 
+class _CompiledReader(_BuildingReader):
+    """`_BuildingReader` whose boundary and geometry properties are walked by `_walk` (unchecked
+    ids only); `_walk.Bail` when a building holds something left to the Python walk."""
+
+    def _boundary(self, prop: etree._Element, d: _Draft) -> None:
+        _walk.boundary(self, prop, d)
+
+    def _geom_property(self, el: etree._Element, d: _Draft, cls: str, sid: str | None) -> bool:
+        return _walk.geom_property(self, el, d, cls, sid)
+
+
+if _walk is not None:
+    _walk.setup(_PolyRec, BOUNDARY_CLASSES, ring_coords)
+
+
 def read_building(
     el: etree._Element,
     *,
@@ -521,6 +546,7 @@ def read_building(
     fallback_id: str,
     default_srs: str | None,
     surface_registry: Mapping[str, SurfaceData] | None = None,
+    compiled: bool | None = None,
 ) -> Building:
     """A complete top-level building element -> `Building` (parts nested).
 
@@ -530,13 +556,25 @@ def read_building(
         fallback_id: id to use when the building has no `gml:id` (stable: from its position).
         default_srs: the model's `srsName`, used when the building's geometry names none.
         surface_registry: model-level surface data by id (for `xlink:href` from local appearances).
+        compiled: walk the geometry with the compiled `_walk` (None: when it is built and not
+            turned off, `COMPILED_WALK`); the Building is the same either way.
     """
     registry = surface_registry or {}
     # ids are checked all at once after the walk (the usual file: every id a plain NCName); a
     # building with any other id is read again with each id mapped as it is read
-    reader = _BuildingReader(id_attr, default_srs, registry, unchecked_ids=True)
-    bid = reader._id(el)
-    draft = reader.draft(el, bid or fallback_id, not bid, None)
+    draft = None
+    use_compiled = COMPILED_WALK if compiled is None else (compiled and _walk is not None)
+    if use_compiled:
+        reader = _CompiledReader(id_attr, default_srs, registry, unchecked_ids=True)
+        bid = reader._id(el)
+        try:
+            draft = reader.draft(el, bid or fallback_id, not bid, None)
+        except _walk.Bail:  # something the compiled walk leaves to the Python walk: read again
+            draft = None
+    if draft is None:
+        reader = _BuildingReader(id_attr, default_srs, registry, unchecked_ids=True)
+        bid = reader._id(el)
+        draft = reader.draft(el, bid or fallback_id, not bid, None)
     if not reader.ids_plain():
         reader = _BuildingReader(id_attr, default_srs, registry)
         bid = reader._id(el)
