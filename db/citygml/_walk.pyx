@@ -16,6 +16,7 @@ walk. Rings that are not one 3D `posList` go through the Python `ring_coords` on
 Only struct fields of libxml2's nodes are read (lxml's headers); no libxml2 function is called.
 """
 
+from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_WRITABLE, PyBuffer_Release, PyObject_GetBuffer
 from cpython.conversion cimport PyOS_string_to_double
 from libc.string cimport strcmp
 
@@ -109,21 +110,44 @@ cdef inline bint _has_attr(xmlNode* n, const char* ns, const char* name) noexcep
     return False
 
 
-cdef object _id(object reader, xmlNode* n, const char* id_ns):
+cdef class _Ctx:
+    """What one call of `boundary` / `geom_property` works with: the reader's collections (looked
+    up once, not per polygon), the owner element (for proxies) and the surface in force."""
+
+    cdef object reader, owner, d, raw, ids, polys, collections, refs, dpolys, far
+    cdef bytes id_ns_bytes
+    cdef const char* id_ns
+
+    def __cinit__(self, reader: object, owner: object, d: object) -> None:
+        if not _ready or reader.raw_ids is None:
+            raise Bail("not set up")
+        id_attr = reader.id_attr
+        if not id_attr.startswith("{") or not id_attr.endswith("}id"):
+            raise Bail("id attribute")
+        self.id_ns_bytes = id_attr[1 : len(id_attr) - 3].encode("utf-8")
+        self.id_ns = self.id_ns_bytes
+        scope = reader.scope
+        self.reader, self.owner, self.d = reader, owner, d
+        self.raw, self.ids, self.polys = reader.raw_ids, scope.ids, scope.polys
+        self.collections, self.refs, self.dpolys = scope.collections, scope.refs, d.polys
+        self.far = reader.far
+
+
+cdef object _id(_Ctx c, xmlNode* n):
     """`_BuildingReader._id` in unchecked mode: the `gml:id` as written (collected in `raw_ids`)."""
-    value = _attr(n, id_ns, b"id")
+    value = _attr(n, c.id_ns, b"id")
     if not value:
         return None
-    reader.raw_ids.append(value)
+    c.raw.append(value)
     return value
 
 
-cdef object _ref(object reader, str href):
+cdef object _ref(_Ctx c, str href):
     """`_BuildingReader._ref` in unchecked mode."""
     if href[:1] != "#":
-        return reader._ref(href)
+        return c.reader._ref(href)
     value = href[1:]
-    reader.raw_ids.append(value)
+    c.raw.append(value)
     return value
 
 
@@ -145,11 +169,12 @@ cdef object _poslist3(xmlNode* pl):
     cdef const char* p
     cdef char* end
     cdef char c
-    cdef Py_ssize_t count = 0, k = 0, i
+    cdef Py_ssize_t count = 0, k = 0
     cdef bint intok = False
     cdef char buf[64]
     cdef Py_ssize_t blen
-    cdef double[:, ::1] view
+    cdef Py_buffer view
+    cdef double* data
     cdef double v
     if t is NULL:
         return np.zeros((0, 3), dtype=np.float64)
@@ -171,53 +196,56 @@ cdef object _poslist3(xmlNode* pl):
     if count % 3:
         return None
     out = np.empty((count // 3, 3), dtype=np.float64)
-    view = out
-    p = s
-    while k < count:
-        while _space(p[0]):
-            p += 1
-        blen = 0
-        while p[0] != 0 and not _space(p[0]):
-            if blen >= 63:
+    PyObject_GetBuffer(out, &view, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS)
+    data = <double*>view.buf
+    try:
+        p = s
+        while k < count:
+            while _space(p[0]):
+                p += 1
+            blen = 0
+            while p[0] != 0 and not _space(p[0]):
+                if blen >= 63:
+                    return None
+                buf[blen] = p[0]
+                blen += 1
+                p += 1
+            buf[blen] = 0
+            end = NULL
+            try:
+                v = PyOS_string_to_double(buf, &end, NULL)  # overflow: +-inf, as float()
+            except ValueError:
                 return None
-            buf[blen] = p[0]
-            blen += 1
-            p += 1
-        buf[blen] = 0
-        end = NULL
-        try:
-            v = PyOS_string_to_double(buf, &end, NULL)  # overflow: +-inf, as float()
-        except ValueError:
-            return None
-        if end != buf + blen:
-            return None
-        view[k // 3, k % 3] = v
-        k += 1
+            if end != buf + blen:
+                return None
+            data[k] = v
+            k += 1
+    finally:
+        PyBuffer_Release(&view)
     return out
 
 
-cdef object _ring(object owner, xmlNode* ring, int dim):
+cdef object _ring(_Ctx c, xmlNode* ring, int dim):
     """`ring_coords(ring, dim)` (`gml_coords`): the fast path here, any other through Python."""
-    cdef xmlNode* c = ring.children
+    cdef xmlNode* ch = ring.children
     cdef xmlNode* pl = NULL
     cdef int n = 0
-    while c is not NULL:
-        if _is_elemlike(c):
+    while ch is not NULL:
+        if _is_elemlike(ch):
             n += 1
-            pl = c
-        c = c.next
+            pl = ch
+        ch = ch.next
     if n == 1 and _is_elem(pl) and _in_gml(pl) and _name_is(pl, b"posList"):
         d = _attr(pl, NULL, b"srsDimension") or _attr(ring, NULL, b"srsDimension")
         if d == "3" or (not d and dim == 3):
             out = _poslist3(pl)
             if out is not None:
                 return out
-    return _ring_coords(_proxy(owner, ring), dim)
+    return _ring_coords(_proxy(c.owner, ring), dim)
 
 
-cdef void _polygon(object reader, object owner, xmlNode* el, object d, object scope, object cls,
-                   object sid, int lod, bint in_solid, object coll, int sign, int dim,
-                   const char* id_ns) except *:
+cdef void _polygon(_Ctx c, xmlNode* el, object cls, object sid, int lod, bint in_solid, object coll,
+                   int sign, int dim) except *:
     """`_BuildingReader._polygon`."""
     cdef xmlNode* ch = el.children
     cdef xmlNode* ring
@@ -238,32 +266,40 @@ cdef void _polygon(object reader, object owner, xmlNode* el, object d, object sc
                     if _is_elem(ring):
                         if not (_in_gml(ring) and _name_is(ring, b"LinearRing")):
                             raise Bail("unsupported ring type")
-                        coords = _ring(owner, ring, dim)
+                        coords = _ring(c, ring, dim)
                         if sign < 0:
                             coords = coords[::-1].copy()
-                        rid = _id(reader, ring, id_ns)
+                        rid = _id(c, ring)
                         if rid:
-                            scope.ids.add(rid)
+                            c.ids.add(rid)
                         (rings if role else interiors).append((rid, coords))
                     ring = ring.next
         ch = ch.next
     if len(rings) != 1:
         raise Bail("not exactly one exterior ring")
-    pid = _id(reader, el, id_ns)
+    pid = _id(c, el)
     rec = _PolyRec(pid, rings + interiors if interiors else rings, cls, lod, sid, in_solid, coll)
-    d.polys.append(rec)
+    c.dpolys.append(rec)
     if pid:
-        scope.ids.add(pid)
-        scope.polys[pid] = rec
+        c.ids.add(pid)
+        c.polys[pid] = rec
     if coll:
-        scope.collections.setdefault(coll, []).append(rec)
+        c.collections.setdefault(coll, []).append(rec)
 
 
-cdef object _line(object owner, xmlNode* n):
-    """`el.sourceline` of node `n`."""
+cdef object _line(_Ctx c, xmlNode* n):
+    """`el.sourceline` of node `n` when the node holds it; else -k: the k-th entry of the
+    reader's `far` list, looked up only for a reference that is warned about (`resolve`)."""
     if 0 < n.line < 65535:
         return n.line
-    return _proxy(owner, n).sourceline
+    c.far.append((c.owner, <size_t>n))
+    return -len(c.far)
+
+
+def far_line(far: list, k: int) -> object:
+    """The `sourceline` of the node of entry `k` of a reader's `far` list."""
+    owner, address = far[k]
+    return _proxy(owner, <xmlNode*><size_t>address).sourceline
 
 
 cdef int _dim_attr(xmlNode* n, int dim) except -2:
@@ -278,16 +314,15 @@ cdef int _dim_attr(xmlNode* n, int dim) except -2:
     return dim
 
 
-cdef void _geometry(object reader, object owner, xmlNode* el, object d, object scope, object cls,
-                    object sid, int lod, bint in_solid, object coll, int sign, int dim,
-                    const char* id_ns) except *:
+cdef void _geometry(_Ctx c, xmlNode* el, object cls, object sid, int lod, bint in_solid, object coll,
+                    int sign, int dim) except *:
     """`_BuildingReader._geometry`."""
     cdef xmlNode* ch
     cdef xmlNode* g
     cdef const char* ln
     href = _attr(el, XLINK, b"href")
     if href is not None:
-        scope.refs.append((_ref(reader, href), in_solid, sign, _line(owner, el)))
+        c.refs.append((_ref(c, href), in_solid, sign, _line(c, el)))
         return
     ln = <const char*>el.name
     if ln[0] == 0:
@@ -298,11 +333,11 @@ cdef void _geometry(object reader, object owner, xmlNode* el, object d, object s
         return
     dim = _dim_attr(el, dim)
     srs = _attr(el, NULL, b"srsName")
-    if srs and d.srs is None:
-        d.srs = srs
+    if srs and c.d.srs is None:
+        c.d.srs = srs
     if (strcmp(ln, b"Polygon") == 0 or strcmp(ln, b"PolygonPatch") == 0 or strcmp(ln, b"Triangle") == 0
             or strcmp(ln, b"Rectangle") == 0):
-        _polygon(reader, owner, el, d, scope, cls, sid, lod, in_solid, coll, sign, dim, id_ns)
+        _polygon(c, el, cls, sid, lod, in_solid, coll, sign, dim)
         return
     if strcmp(ln, b"OrientableSurface") == 0:
         o = _attr(el, NULL, b"orientation")
@@ -313,31 +348,29 @@ cdef void _geometry(object reader, object owner, xmlNode* el, object d, object s
     elif (strcmp(ln, b"MultiSurface") == 0 or strcmp(ln, b"CompositeSurface") == 0
           or strcmp(ln, b"Shell") == 0 or strcmp(ln, b"Surface") == 0
           or strcmp(ln, b"TriangulatedSurface") == 0):
-        gid = _id(reader, el, id_ns)
+        gid = _id(c, el)
         if gid:
             coll = gid
-            scope.ids.add(gid)
+            c.ids.add(gid)
     ch = el.children
     while ch is not NULL:
         if _is_elem(ch):
             if _in_gml(ch) and _name_is(ch, b"surfaceMember"):
                 href = _attr(ch, XLINK, b"href")
                 if href is not None:
-                    scope.refs.append((_ref(reader, href), in_solid, sign, _line(owner, ch)))
+                    c.refs.append((_ref(c, href), in_solid, sign, _line(c, ch)))
                 else:
                     g = ch.children
                     while g is not NULL:
                         if _is_elem(g):
                             if (_in_gml(g) and _name_is(g, b"Polygon") and not _has_attr(g, NULL, b"srsName")
                                     and not _has_attr(g, NULL, b"srsDimension")):
-                                _polygon(reader, owner, g, d, scope, cls, sid, lod, in_solid, coll, sign,
-                                         dim, id_ns)
+                                _polygon(c, g, cls, sid, lod, in_solid, coll, sign, dim)
                             else:
-                                _geometry(reader, owner, g, d, scope, cls, sid, lod, in_solid, coll, sign,
-                                          dim, id_ns)
+                                _geometry(c, g, cls, sid, lod, in_solid, coll, sign, dim)
                         g = g.next
             else:
-                _geometry(reader, owner, ch, d, scope, cls, sid, lod, in_solid, coll, sign, dim, id_ns)
+                _geometry(c, ch, cls, sid, lod, in_solid, coll, sign, dim)
         ch = ch.next
 
 
@@ -360,60 +393,46 @@ cdef int _prop_lod(xmlNode* n) except -2:
     return -1
 
 
-cdef bint _geom_property(object reader, object owner, xmlNode* el, object d, object scope, object cls,
-                         object sid, const char* id_ns) except -1:
+cdef bint _geom_property(_Ctx c, xmlNode* el, object cls, object sid) except -1:
     """`_BuildingReader._geom_property`."""
     cdef int lod = _prop_lod(el)
     cdef xmlNode* g
     if lod < 0:
         return False
     if _has_attr(el, XLINK, b"href"):
-        _geometry(reader, owner, el, d, scope, cls, sid, lod, False, None, 1, 3, id_ns)
+        _geometry(c, el, cls, sid, lod, False, None, 1, 3)
         return True
     g = el.children
     while g is not NULL:
         if _is_elem(g):
-            _geometry(reader, owner, g, d, scope, cls, sid, lod, False, None, 1, 3, id_ns)
+            _geometry(c, g, cls, sid, lod, False, None, 1, 3)
         g = g.next
     return True
 
 
-cdef bytes _ns_of(str id_attr):
-    """'{ns}id' -> b'ns'."""
-    if not id_attr.startswith("{") or not id_attr.endswith("}id"):
-        raise Bail("id attribute")
-    return id_attr[1 : len(id_attr) - 3].encode("utf-8")
-
-
 def geom_property(reader: object, el: object, d: object, cls: str, sid: object) -> bool:
     """`_BuildingReader._geom_property(el, d, cls, sid)` (unchecked-ids mode)."""
-    if not _ready or reader.raw_ids is None:
-        raise Bail("not set up")
-    ns = _ns_of(reader.id_attr)
-    return _geom_property(reader, el, (<cetree._Element>el)._c_node, d, reader.scope, cls, sid, ns)
+    cdef _Ctx c = _Ctx(reader, el, d)
+    return _geom_property(c, (<cetree._Element>el)._c_node, cls, sid)
 
 
 def boundary(reader: object, prop: object, d: object) -> None:
     """`_BuildingReader._boundary(prop, d)` (unchecked-ids mode)."""
-    if not _ready or reader.raw_ids is None:
-        raise Bail("not set up")
-    ns = _ns_of(reader.id_attr)
-    cdef const char* id_ns = ns
+    cdef _Ctx c = _Ctx(reader, prop, d)
     cdef xmlNode* surf = (<cetree._Element>prop)._c_node.children
     cdef xmlNode* ch
-    scope = reader.scope
     while surf is not NULL:
         if _is_elem(surf):
             name = (<bytes>(<const char*>surf.name)).decode("utf-8")
             if name:
                 cls = _BOUNDARY_CLASSES.get(name, "unclassified")
-                sid = _id(reader, surf, id_ns)
+                sid = _id(c, surf)
                 if sid:
-                    scope.ids.add(sid)
+                    c.ids.add(sid)
                 ch = surf.children
                 while ch is not NULL:
                     if _is_elem(ch):
-                        _geom_property(reader, prop, ch, d, scope, cls, sid, id_ns)
+                        _geom_property(c, ch, cls, sid)
                     ch = ch.next
         surf = surf.next
 

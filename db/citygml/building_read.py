@@ -528,11 +528,25 @@ class _CompiledReader(_BuildingReader):
     """`_BuildingReader` whose boundary and geometry properties are walked by `_walk` (unchecked
     ids only); `_walk.Bail` when a building holds something left to the Python walk."""
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        #: (owner element, node address) of references whose line libxml2 does not keep in the
+        #: node (-k in `scope.refs`: entry k - 1); looked up for the references warned about
+        self.far: list[tuple[etree._Element, int]] = []
+
     def _boundary(self, prop: etree._Element, d: _Draft) -> None:
         _walk.boundary(self, prop, d)
 
     def _geom_property(self, el: etree._Element, d: _Draft, cls: str, sid: str | None) -> bool:
         return _walk.geom_property(self, el, d, cls, sid)
+
+    def resolve(self) -> None:
+        """`_BuildingReader.resolve`, with the true line of each reference it warns about."""
+        refs, polys, colls = self.scope.refs, self.scope.polys, self.scope.collections
+        for k, (ref, in_solid, sign, line) in enumerate(refs):
+            if type(line) is int and line < 0 and ref not in polys and ref not in colls:
+                refs[k] = (ref, in_solid, sign, _walk.far_line(self.far, -line - 1))
+        super().resolve()
 
 
 if _walk is not None:
