@@ -39,7 +39,7 @@ COPY --from=viewer /viewer/vendor /src/services/api/viewer/vendor
 RUN apt-get update \
  && apt-get install -y --no-install-recommends gcc libc6-dev \
  && pip install /src && rm -rf /src \
- && python -c "from db.citygml.building_read import COMPILED_WALK; assert COMPILED_WALK" \
+ && python -c "from db.citygml.building_read import COMPILED_WALK; from db.import_rows import _fmt; assert COMPILED_WALK and _fmt" \
  && apt-get purge -y --auto-remove gcc libc6-dev \
  && rm -rf /var/lib/apt/lists/*
 

@@ -23,10 +23,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from db.compiled import load
 from db.geomcodec import EncodedPolygons, encode_envelope, encode_footprints, encode_polygons
 from db.ops import copy_field, pg_bool_array, pg_text_array
 from db.surface_checks import jsonable, surface_checks
 from workers.pipeline.geometry.citymodel import Appearance, Building, Polygon
+
+#: `repr` of floats in C (Ryu; `db/_fmt.pyx`), None: Python's `repr` (the same texts)
+_fmt = load("db._fmt")
 
 if TYPE_CHECKING:  # imported where used: the reader process of a model in the database SRID needs no PROJ
     from workers.pipeline.geometry.transform import CrsTransform
@@ -194,8 +198,10 @@ def _ordinals(owner: Sequence[int]) -> list[str]:
 
 
 def _floats(values: np.ndarray) -> list[str]:
-    """Float COPY fields: shortest round-trip decimals, NULL for NaN."""
+    """Float COPY fields: shortest round-trip decimals (`repr`), NULL for NaN."""
     null = "\\N"
+    if _fmt is not None:
+        return _fmt.float_texts(values, null)
     return [repr(v) if v == v else null for v in values.tolist()]
 
 
@@ -243,9 +249,13 @@ def _surface_tails(
     polygon (one ring, plain ids, a geometry) is formatted inline, any other through
     `_surface_fields`."""
     null = "\\N"
-    normal_s = [
-        f"{{{a!r},{b!r},{c!r}}}" if a == a and b == b and c == c else null for a, b, c in enc.normal.tolist()
-    ]
+    if _fmt is not None:
+        normal_s = _fmt.vector_texts(enc.normal, null)
+    else:
+        normal_s = [
+            f"{{{a!r},{b!r},{c!r}}}" if a == a and b == b and c == c else null
+            for a, b, c in enc.normal.tolist()
+        ]
     offset_s = _floats(enc.offset)
     ordinal_s = _ordinals(owner)
     checks_s = [copy_field(c) for c in checks_json]

@@ -15,10 +15,14 @@ from typing import Any
 import numpy as np
 
 from db.citygml.checks import CheckOptions
+from db.compiled import load
 from db.geomcodec import EncodedPolygons
 from workers.pipeline.geometry.citymodel import Building, Polygon
 
 __all__ = ["fast_checks", "full_checks", "jsonable", "surface_checks"]
+
+#: `repr` of floats in C (Ryu; `db/_fmt.pyx`), None: Python's `repr` (the same texts)
+_fmt = load("db._fmt")
 
 
 def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
@@ -49,6 +53,8 @@ def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
 def _nums(values: np.ndarray, texts: Sequence[str] | None = None) -> list[str]:
     """Floats `(P,)` -> JSON numbers (shortest round-trip decimals; null for NaN and inf);
     `texts`: their `repr`s where finite, if made already (any text where not)."""
+    if texts is None and _fmt is not None:
+        return _fmt.float_texts(values, "null", "null")
     if texts is None:
         finite = np.isfinite(values).tolist()
         return [repr(v) if ok else "null" for v, ok in zip(values.tolist(), finite, strict=True)]

@@ -21,7 +21,6 @@ exterior, 1.. for the interiors); `_g` is appended until the id is unused in the
 from __future__ import annotations
 
 import logging
-import os
 import re
 from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass, field
@@ -46,18 +45,17 @@ from db.citygml.names import (
     ref_id,
     to_ncname,
 )
+from db.compiled import load
 from workers.pipeline.geometry.citymodel import Building, Polygon, Ring, SurfaceData
 
 log = logging.getLogger(__name__)
 
-try:  # the compiled geometry walk (setup.py builds it); without it the Python walk below is used
-    from db.citygml import _walk  # type: ignore[attr-defined]
-except ImportError:  # pragma: no cover - depends on the install
-    _walk = None
+# the compiled geometry walk (setup.py builds it); without it the Python walk below is used
+_walk = load("db.citygml._walk")
 if _walk is not None and not _walk.selftest():  # built against other lxml headers: not used
     _walk = None
-#: False when the compiled walk is not built or `CITYTHERM_PY_WALK=1` turns it off (A/B, tests)
-COMPILED_WALK = _walk is not None and os.environ.get("CITYTHERM_PY_WALK", "") != "1"
+#: False when the compiled walk is not built or `CITYTHERM_NO_COMPILED=1` turns it off
+COMPILED_WALK = _walk is not None
 
 _GEOM_SUFFIXES = ("Solid", "MultiSurface", "Geometry", "FootPrint", "RoofEdge")
 _SKIP_GEOM = frozenset({"LineString", "MultiCurve", "Curve", "CompositeCurve", "Point", "MultiPoint"})
