@@ -160,6 +160,64 @@ cdef inline bint _space(char c) noexcept:
     return c == 32 or c == 9 or c == 10 or c == 13 or c == 11 or c == 12
 
 
+cdef double[23] _POW10 = [1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14,
+                          1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22]
+
+
+cdef bint _decimal(const char* s, Py_ssize_t n, double* out) noexcept:
+    """A plain decimal `[+-]digits[.digits]` (at least one digit) whose digits make an integer
+    m < 2**53 with k <= 22 digits after the point: out = +-(m / 10**k), True. Both are exact
+    doubles, so the one division, correctly rounded, is the correctly rounded value of the decimal:
+    what `float()` gives (Clinger's fast path). False for any other token (then `float()`'s own
+    parser reads it)."""
+    cdef Py_ssize_t i = 0
+    cdef bint neg = False, point = False
+    cdef int digits = 0, frac = 0
+    cdef unsigned long long m = 0
+    cdef char c
+    if n == 0:
+        return False
+    if s[0] == 45 or s[0] == 43:  # - +
+        neg = s[0] == 45
+        i = 1
+    while i < n:
+        c = s[i]
+        if c >= 48 and c <= 57:
+            if m != 0 or c != 48:
+                digits += 1
+                if digits > 16:
+                    return False
+            m = m * 10 + <unsigned long long>(c - 48)
+            if point:
+                frac += 1
+        elif c == 46 and not point:
+            point = True
+        else:
+            return False
+        i += 1
+    if (n - (1 if (s[0] == 45 or s[0] == 43) else 0) - (1 if point else 0)) == 0:
+        return False  # no digit
+    if m >= 9007199254740992ULL or frac > 22:
+        return False
+    out[0] = -(<double>m / _POW10[frac]) if neg else <double>m / _POW10[frac]
+    return True
+
+
+def parse_decimal(token: bytes) -> object:
+    """The value `_poslist3` reads from one token (its fast path or CPython's parser), None when
+    neither takes it; for tests."""
+    cdef double v
+    cdef char* end = NULL
+    cdef const char* s = token
+    if _decimal(s, len(token), &v):
+        return v
+    try:
+        v = PyOS_string_to_double(s, &end, NULL)
+    except ValueError:
+        return None
+    return v if end == s + len(token) else None
+
+
 cdef object _poslist3(xmlNode* pl):
     """The text of a `posList` -> `(N, 3)` float64, or None when it is not the plain case (then
     the Python `ring_coords` reads it): one text node (or none), only number characters and
@@ -211,13 +269,14 @@ cdef object _poslist3(xmlNode* pl):
                 blen += 1
                 p += 1
             buf[blen] = 0
-            end = NULL
-            try:
-                v = PyOS_string_to_double(buf, &end, NULL)  # overflow: +-inf, as float()
-            except ValueError:
-                return None
-            if end != buf + blen:
-                return None
+            if not _decimal(buf, blen, &v):
+                end = NULL
+                try:
+                    v = PyOS_string_to_double(buf, &end, NULL)  # overflow: +-inf, as float()
+                except ValueError:
+                    return None
+                if end != buf + blen:
+                    return None
             data[k] = v
             k += 1
     finally:

@@ -227,3 +227,28 @@ def test_warning_lines_beyond_65535(
     python = _outcome(path, False, monkeypatch, caplog)
     assert compiled == python
     assert len(python[1]) == 1 and "#missing" in python[1][0]
+
+
+def test_number_tokens_read_as_float_reads_them() -> None:
+    """The walk's number reader (its exact fast path for plain decimals, CPython's parser for the
+    rest) against `float()`, bit for bit, over random tokens of 1-20 digits with or without a
+    point and sign (fixed seed) and the edges of the fast path (2**53, 22 decimals, no digit)."""
+    rng = np.random.default_rng(RNG_SEED)
+    tokens = []
+    for _ in range(100_000):
+        digits = "".join(rng.choice(list("0123456789"), int(rng.integers(1, 21))))
+        cut = int(rng.integers(-1, len(digits) + 1))
+        body = digits if cut < 0 else f"{digits[:cut]}.{digits[cut:]}"
+        tokens.append(str(rng.choice(["", "-", "+"])) + body)
+    tokens += ["0", "-0", "-0.0", ".5", "5.", ".", "-", "+.", "1." + "0" * 30, "9007199254740991"]
+    tokens += ["9007199254740992", "9007199254740993", "0." + "0" * 21 + "1", "0." + "0" * 22 + "1"]
+    tokens += ["00000000000000000001.5", "123456789012345678", "1e5", "-1.5E-3", "1e400", "e5", "1e"]
+    for token in tokens:
+        try:
+            expect: float | None = float(token)
+        except ValueError:
+            expect = None
+        got = building_read._walk.parse_decimal(token.encode())
+        assert (got is None) == (expect is None), token
+        if expect is not None:
+            assert np.float64(got).tobytes() == np.float64(expect).tobytes(), token
