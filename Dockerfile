@@ -32,10 +32,16 @@ RUN python -c "import tomllib; d = tomllib.load(open('/tmp/citytherm-deps/pyproj
  && rm -rf /tmp/citytherm-deps
 
 # The project itself with the viewer's modules (not editable, no dev extra); the sources are not kept
-# in the image.
+# in the image. gcc builds the compiled CityGML walk (setup.py; the image has Python's headers) and
+# is removed again in the same layer.
 COPY . /src
 COPY --from=viewer /viewer/vendor /src/services/api/viewer/vendor
-RUN pip install /src && rm -rf /src
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends gcc libc6-dev \
+ && pip install /src && rm -rf /src \
+ && python -c "from db.citygml.building_read import COMPILED_WALK; from db.import_rows import _fmt; assert COMPILED_WALK and _fmt" \
+ && apt-get purge -y --auto-remove gcc libc6-dev \
+ && rm -rf /var/lib/apt/lists/*
 
 # A non-root user; /data (CITYTHERM_STORAGE_DIR) belongs to it, and a new named volume mounted
 # there takes this ownership, so the API and the workers can write to it.

@@ -14,7 +14,8 @@ $(SYSSTAMP): .ci/system-deps.sh
 	bash .ci/system-deps.sh
 	@mkdir -p $(VENV) && touch $@
 
-$(STAMP): pyproject.toml $(SYSSTAMP)
+# setup.py compiles the import's C extensions (pip install -e builds them in place)
+$(STAMP): pyproject.toml setup.py db/citygml/_walk.pyx db/_fmt.pyx db/_ryu/pyrepr64.h $(SYSSTAMP)
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[dev]'

@@ -7,9 +7,11 @@
 # - docker-compose: validates docker-compose.yml (tests/unit/test_compose.py; no Docker engine needed)
 # - chromium: headless browser of the /viewer test (tests/integration/test_viewer.py, via playwright-core)
 # - nodejs, npm: the Khronos glTF validator (tools/gltf-validator, tests of the 3D Tiles export)
+# - build-essential, python3-dev: C compiler and Python headers for the compiled CityGML walk that
+#   `pip install` builds (setup.py, db/citygml/_walk.pyx; tests/unit/test_citygml_walk.py needs it)
 set -euo pipefail
 pkgs=(postgresql-15 postgresql-15-postgis-3 redis-server libusb-1.0-0 libgomp1 libgl1 libglib2.0-0 gdal-bin
-      docker-compose chromium)
+      docker-compose chromium build-essential python3-dev)
 # node + npm run the Khronos glTF validator (tests of the 3D Tiles export); a NodeSource nodejs
 # bundles npm and conflicts with Debian's npm package, so only when npm is missing
 command -v npm >/dev/null 2>&1 || pkgs+=(nodejs npm)

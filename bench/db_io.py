@@ -13,7 +13,8 @@ runs each phase in its own subprocess so that peak RSS figures are the phase's o
   start-up (`*_per_s`) and over the import call alone (`import_call`), surfaces/s, MB/s; peak RSS
   and CPU seconds of every process: the importer, its reader process and the PostgreSQL backend
   (its RSS includes the shared buffers it touched); the machine's load average, since it is
-  shared (wall-clock figures drop when other processes compete for the cores); and from the CPU
+  shared (wall-clock figures drop when other processes compete for the cores); which compiled parts
+  the readers use (`compiled_parts`; `CITYTHERM_NO_COMPILED=1` runs the Python code); and from the CPU
   seconds of those processes (the importer's and the reader's with their start-up) the wall time
   and buildings/s they allow on 2 idle cores (`cpu_budget`); and the start-up of the `citytherm`
   command line, which `citytherm import` pays on top of the phase's own (`cli_startup`);
@@ -93,6 +94,19 @@ def _proc_figures(pid: int) -> dict:
     except (OSError, IndexError, ValueError):
         pass
     return out
+
+
+def _compiled_parts() -> dict[str, bool]:
+    """Which compiled parts of the import the reader processes use (`db.compiled`: built, and not
+    turned off with CITYTHERM_NO_COMPILED=1): the geometry walk and the float texts."""
+    from importlib.util import find_spec
+
+    from db.compiled import OFF
+
+    return {
+        "geometry_walk": not OFF and find_spec("db.citygml._walk") is not None,
+        "float_texts": not OFF and find_spec("db._fmt") is not None,
+    }
 
 
 def cpu_budget(cpu_s: dict[str, float], buildings: int, parts: int, cores: int = 2) -> dict:
@@ -193,6 +207,7 @@ def phase_import(
         "checks": checks,
         "reader_processes": len(s.reader_cpu_s),
         "own_links_unchecked": opts.own_links_unchecked,
+        "compiled_parts": _compiled_parts(),
         "load_avg_1min_after": round(os.getloadavg()[0], 2),
     }
 

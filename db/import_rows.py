@@ -17,15 +17,20 @@ import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from itertools import chain
 from operator import attrgetter
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from db.compiled import load
 from db.geomcodec import EncodedPolygons, encode_envelope, encode_footprints, encode_polygons
 from db.ops import copy_field, pg_bool_array, pg_text_array
 from db.surface_checks import jsonable, surface_checks
 from workers.pipeline.geometry.citymodel import Appearance, Building, Polygon
+
+#: `repr` of floats in C (Ryu; `db/_fmt.pyx`), None: Python's `repr` (the same texts)
+_fmt = load("db._fmt")
 
 if TYPE_CHECKING:  # imported where used: the reader process of a model in the database SRID needs no PROJ
     from workers.pipeline.geometry.transform import CrsTransform
@@ -193,8 +198,10 @@ def _ordinals(owner: Sequence[int]) -> list[str]:
 
 
 def _floats(values: np.ndarray) -> list[str]:
-    """Float COPY fields: shortest round-trip decimals, NULL for NaN."""
+    """Float COPY fields: shortest round-trip decimals (`repr`), NULL for NaN."""
     null = "\\N"
+    if _fmt is not None:
+        return _fmt.float_texts(values, null)
     return [repr(v) if v == v else null for v in values.tolist()]
 
 
@@ -205,11 +212,9 @@ _SPECIAL = re.compile(r'[\\\t\n\r"]')
 def _plain(polys: Sequence[Polygon]) -> bool:
     """True when no id or class text of `polys` needs COPY escaping or array quoting (the reader's
     ids are NCNames: always), so that their fields can be written as they are."""
-    get = attrgetter("id", "exterior.id", "surface_class")
-    texts = "\x00".join(t for p in polys for t in get(p))
-    opt = "\x00".join(filter(None, map(attrgetter("surface_id"), polys)))
-    opt2 = "\x00".join(filter(None, map(attrgetter("collection_id"), polys)))
-    return not (_SPECIAL.search(texts) or _SPECIAL.search(opt) or _SPECIAL.search(opt2))
+    get = attrgetter("id", "exterior.id", "surface_class", "surface_id", "collection_id")
+    # None (no surface or collection id) joins as "None": plain, like an absent id
+    return not _SPECIAL.search("\x00".join(map(str, chain.from_iterable(map(get, polys)))))
 
 
 def _surface_fields(p: Polygon, ring_closed: Sequence[bool], ewkb: str | None) -> tuple[str, ...]:
@@ -234,15 +239,24 @@ def _surface_fields(p: Polygon, ring_closed: Sequence[bool], ewkb: str | None) -
 
 
 def _surface_tails(
-    polys: Sequence[Polygon], owner: Sequence[int], enc: EncodedPolygons, checks_json: Sequence[str | None]
+    polys: Sequence[Polygon],
+    owner: Sequence[int],
+    enc: EncodedPolygons,
+    checks_json: Sequence[str | None],
+    area_s: Sequence[str],
 ) -> list[str]:
-    """Tab-joined `SURFACE_TAIL` fields per polygon; the usual polygon (one ring, plain ids, a
-    geometry) is formatted inline, any other through `_surface_fields`."""
+    """Tab-joined `SURFACE_TAIL` fields per polygon (`area_s`: `_floats(enc.area)`); the usual
+    polygon (one ring, plain ids, a geometry) is formatted inline, any other through
+    `_surface_fields`."""
     null = "\\N"
-    normal_s = [
-        f"{{{a!r},{b!r},{c!r}}}" if a == a and b == b and c == c else null for a, b, c in enc.normal.tolist()
-    ]
-    offset_s, area_s = _floats(enc.offset), _floats(enc.area)
+    if _fmt is not None:
+        normal_s = _fmt.vector_texts(enc.normal, null)
+    else:
+        normal_s = [
+            f"{{{a!r},{b!r},{c!r}}}" if a == a and b == b and c == c else null
+            for a, b, c in enc.normal.tolist()
+        ]
+    offset_s = _floats(enc.offset)
     ordinal_s = _ordinals(owner)
     checks_s = [copy_field(c) for c in checks_json]
     plain = _plain(polys)
@@ -288,7 +302,9 @@ def batch_lines(
     owner = [i for i, b in enumerate(flat) for _ in b.polygons]
     enc = encode_polygons(polys, srid)
     owner_ids = [flat[i].id for i in owner] if checks == "full" else []
-    checks_json = surface_checks(checks, enc, polys, owner_ids, tops)
+    # the areas' decimals are written twice (area_m2 and the checks' JSON): formatted once
+    area_s = _floats(enc.area)
+    checks_json = surface_checks(checks, enc, polys, owner_ids, tops, area_text=area_s)
     footprints = encode_footprints(flat, dict(zip([p.id for p in polys], enc.normal, strict=True)), srid)
     apps = [(i, b.appearances) for i, b in enumerate(flat) if b.appearances]
     return BatchLines(
@@ -296,7 +312,7 @@ def batch_lines(
         parent=parent,
         root=root,
         is_part=[b.is_part for b in flat],
-        surface_tails=_surface_tails(polys, owner, enc, checks_json),
+        surface_tails=_surface_tails(polys, owner, enc, checks_json, area_s),
         owner=owner,
         appearances=apps,
         polygon_ids=[p.id for p in polys] if apps else [],

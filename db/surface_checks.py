@@ -15,10 +15,14 @@ from typing import Any
 import numpy as np
 
 from db.citygml.checks import CheckOptions
+from db.compiled import load
 from db.geomcodec import EncodedPolygons
 from workers.pipeline.geometry.citymodel import Building, Polygon
 
 __all__ = ["fast_checks", "full_checks", "jsonable", "surface_checks"]
+
+#: `repr` of floats in C (Ryu; `db/_fmt.pyx`), None: Python's `repr` (the same texts)
+_fmt = load("db._fmt")
 
 
 def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
@@ -46,10 +50,18 @@ def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:
     return out
 
 
-def _nums(values: np.ndarray) -> list[str]:
-    """Floats `(P,)` -> JSON numbers (shortest round-trip decimals; null for NaN and inf)."""
-    finite = np.isfinite(values).tolist()
-    return [repr(v) if ok else "null" for v, ok in zip(values.tolist(), finite, strict=True)]
+def _nums(values: np.ndarray, texts: Sequence[str] | None = None) -> list[str]:
+    """Floats `(P,)` -> JSON numbers (shortest round-trip decimals; null for NaN and inf);
+    `texts`: their `repr`s where finite, if made already (any text where not)."""
+    if texts is None and _fmt is not None:
+        return _fmt.float_texts(values, "null", "null")
+    if texts is None:
+        finite = np.isfinite(values).tolist()
+        return [repr(v) if ok else "null" for v, ok in zip(values.tolist(), finite, strict=True)]
+    out = list(texts)
+    for i in np.flatnonzero(~np.isfinite(values)).tolist():
+        out[i] = "null"
+    return out
 
 
 #: problem names of the vectorised checks, by bit (1: too few vertices, 2: zero area, 4: non-planar)
@@ -59,10 +71,12 @@ _PROBLEMS = [
 ]
 
 
-def fast_checks(enc: EncodedPolygons, polygons: Sequence[Polygon]) -> list[str]:
+def fast_checks(
+    enc: EncodedPolygons, polygons: Sequence[Polygon], area_text: Sequence[str] | None = None
+) -> list[str]:
     """Vectorised checks from the batch encoding, JSON text per polygon: vertices, planarity,
     area, unclosed rings (the tolerances of `db.citygml.checks.CheckOptions`; no self-intersection
-    or outward test)."""
+    or outward test). `area_text`: `repr` of each finite area, if made already."""
     opt = CheckOptions()
     with np.errstate(invalid="ignore"):
         few = enc.min_vertices < 3
@@ -70,7 +84,7 @@ def fast_checks(enc: EncodedPolygons, polygons: Sequence[Polygon]) -> list[str]:
         nonplanar = np.isfinite(enc.planarity) & (enc.planarity > opt.planarity_tolerance_m)
     codes = (few.astype(np.int64) | (zero.astype(np.int64) << 1) | (nonplanar.astype(np.int64) << 2)).tolist()
     joined = [", ".join(names) for names in _PROBLEMS]
-    verts, plan, area = enc.min_vertices.tolist(), _nums(enc.planarity), _nums(enc.area)
+    verts, plan, area = enc.min_vertices.tolist(), _nums(enc.planarity), _nums(enc.area, area_text)
     out = []
     for k, closed in enumerate(enc.ring_closed):
         unclosed = "[]"
@@ -108,11 +122,12 @@ def surface_checks(
     polygons: Sequence[Polygon],
     owners: Sequence[str],
     tops: Sequence[Building],
+    area_text: Sequence[str] | None = None,
 ) -> list[str | None]:
     """JSON text of the checks of each polygon of a batch (`owners[k]`: id of the building or part
-    owning polygon k), for `mode` "fast", "full" or "none"."""
+    owning polygon k), for `mode` "fast", "full" or "none" (`area_text`: see `fast_checks`)."""
     if mode == "fast":
-        return list(fast_checks(enc, polygons))
+        return list(fast_checks(enc, polygons, area_text))
     if mode == "full":
         full = full_checks(tops)
         return [full.get((b, p.id)) for b, p in zip(owners, polygons, strict=True)]

@@ -21,21 +21,44 @@ exterior, 1.. for the interiors); `_g` is appended until the id is unused in the
 from __future__ import annotations
 
 import logging
-import re
 from collections.abc import Mapping, MutableMapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from lxml import etree
 
-from db.citygml.appearance_read import AppearanceDraft, finish_appearance, parse_appearance
+from db.citygml.appearance_read import finish_appearance, parse_appearance
+from db.citygml.building_tags import (
+    _D_APPEARANCE,
+    _D_BOUNDARY,
+    _D_CORE,
+    _D_ENVELOPE,
+    _D_GENERIC,
+    _D_GEOMETRY,
+    _D_INSTALLATION,
+    _D_NAME,
+    _D_OTHER,
+    _D_PARTS,
+    _D_STANDARD,
+    _DRAFT_KIND,
+    _GENERIC_KINDS,
+    _LINEAR_RING_TAGS,
+    _MEMBER_TAGS,
+    _PLAIN_IDS,
+    _POLYGON_TAGS,
+    _PROP_LOD,
+    _RING_ROLES,
+    _SKIP_GEOM,
+    _Draft,
+    _draft_kind,
+    _is_gml,
+    _PolyRec,
+    _prop_lod,
+    _Scope,
+)
 from db.citygml.gml_coords import ring_coords
 from db.citygml.names import (
     BOUNDARY_CLASSES,
-    CORE_ATTRIBUTES,
-    GML32_NS,
-    GML_NS,
     MULTI_ATTRIBUTES,
     STANDARD_ATTRIBUTES,
     XLINK_HREF,
@@ -45,155 +68,17 @@ from db.citygml.names import (
     ref_id,
     to_ncname,
 )
+from db.compiled import load
 from workers.pipeline.geometry.citymodel import Building, Polygon, Ring, SurfaceData
 
 log = logging.getLogger(__name__)
 
-_GEOM_SUFFIXES = ("Solid", "MultiSurface", "Geometry", "FootPrint", "RoofEdge")
-_SKIP_GEOM = frozenset({"LineString", "MultiCurve", "Curve", "CompositeCurve", "Point", "MultiPoint"})
-_GENERIC_KINDS: dict[str, type] = {
-    "stringAttribute": str,
-    "intAttribute": int,
-    "doubleAttribute": float,
-    "dateAttribute": str,
-    "uriAttribute": str,
-    "measureAttribute": float,
-    "StringAttribute": str,
-    "IntAttribute": int,
-    "DoubleAttribute": float,
-    "DateAttribute": str,
-    "UriAttribute": str,
-    "MeasureAttribute": float,
-    "CodeAttribute": str,
-}
-
-
-@dataclass
-class _PolyRec:
-    """A polygon definition while its building is being read."""
-
-    id: str | None
-    rings: list[tuple[str | None, np.ndarray]]
-    surface_class: str
-    lod: int
-    surface_id: str | None
-    in_solid: bool
-    collection_id: str | None
-    solid_reversed: bool = False
-
-
-@dataclass
-class _Scope:
-    """Per top-level building: definitions and references, for xlink resolution."""
-
-    polys: dict[str, _PolyRec] = field(default_factory=dict)
-    collections: dict[str, list[_PolyRec]] = field(default_factory=dict)
-    refs: list[tuple[str, bool, int, int | None]] = field(default_factory=list)
-    ids: set[str] = field(default_factory=set)
-
-
-@dataclass
-class _Draft:
-    """A building or part while it is being read."""
-
-    id: str
-    generated_id: bool
-    is_part: bool
-    parent_id: str | None
-    polys: list[_PolyRec] = field(default_factory=list)
-    parts: list[_Draft] = field(default_factory=list)
-    attributes: dict[str, Any] = field(default_factory=dict)
-    appearances: list[AppearanceDraft] = field(default_factory=list)
-    name: str | None = None
-    srs: str | None = None
-    envelope_srs: str | None = None
-
-
-#: one or more plain NCNames (`get_id` keeps them as they are), one a line
-_PLAIN_IDS = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*(?:\n[A-Za-z_][A-Za-z0-9_.\-]*)*")
-_MEMBER_TAGS = frozenset({f"{{{GML_NS}}}surfaceMember", f"{{{GML32_NS}}}surfaceMember"})
-_POLYGON_TAGS = frozenset({f"{{{GML_NS}}}Polygon", f"{{{GML32_NS}}}Polygon"})
-_LINEAR_RING_TAGS = frozenset({f"{{{GML_NS}}}LinearRing", f"{{{GML32_NS}}}LinearRing"})
-#: Ring property tags -> True for the exterior, False for an interior (GML 3 and GML 2 names).
-_RING_ROLES: dict[str, bool] = {
-    f"{{{ns}}}{name}": role
-    for ns in (GML_NS, GML32_NS)
-    for name, role in (
-        ("exterior", True),
-        ("interior", False),
-        ("outerBoundaryIs", True),
-        ("innerBoundaryIs", False),
-    )
-}
-_PROP_LOD: dict[object, int] = {}
-
-
-def _prop_lod(tag: object) -> int:
-    """LoD of a geometry property tag (`lod2Solid`, `lod1MultiSurface`, `lod3Geometry`, ...), -1
-    for any other tag (cached per tag)."""
-    lod = _PROP_LOD.get(tag)
-    if lod is None:
-        ln = local(tag)
-        ok = len(ln) > 4 and ln.startswith("lod") and ln[3].isdigit() and ln[4:] in _GEOM_SUFFIXES
-        lod = int(ln[3]) if ok else -1
-        if len(_PROP_LOD) < 4096:
-            _PROP_LOD[tag] = lod
-    return lod
-
-
-def _is_gml(tag: str) -> bool:
-    """True for a tag in a GML namespace (3.1 or 3.2)."""
-    return tag.startswith("{http://www.opengis.net/gml")
-
-
-#: what a child element of a building is, for `_BuildingReader.draft` (cached per tag)
-(
-    _D_OTHER,
-    _D_GEOMETRY,
-    _D_BOUNDARY,
-    _D_ENVELOPE,
-    _D_NAME,
-    _D_STANDARD,
-    _D_CORE,
-    _D_APPEARANCE,
-    _D_PARTS,
-    _D_INSTALLATION,
-    _D_GENERIC,
-) = range(11)
-_DRAFT_KIND: dict[str, int] = {}
-
-
-def _draft_kind(tag: str) -> int:
-    """`_D_*` kind of the child element tag `tag` of a building (cached per tag)."""
-    kind = _DRAFT_KIND.get(tag)
-    if kind is not None:
-        return kind
-    ln, is_gml = local(tag), _is_gml(tag)
-    if _prop_lod(tag) >= 0:
-        kind = _D_GEOMETRY
-    elif ln in ("boundedBy", "boundary") and not is_gml:
-        kind = _D_BOUNDARY
-    elif ln == "boundedBy":
-        kind = _D_ENVELOPE
-    elif ln == "name" and is_gml:
-        kind = _D_NAME
-    elif ln in STANDARD_ATTRIBUTES and not is_gml:
-        kind = _D_STANDARD
-    elif ln in CORE_ATTRIBUTES:
-        kind = _D_CORE
-    elif ln == "appearance":
-        kind = _D_APPEARANCE
-    elif ln in ("consistsOfBuildingPart", "buildingPart"):
-        kind = _D_PARTS
-    elif ln == "outerBuildingInstallation":
-        kind = _D_INSTALLATION
-    elif ln in _GENERIC_KINDS or ln in ("genericAttribute", "genericAttributeSet"):
-        kind = _D_GENERIC
-    else:
-        kind = _D_OTHER
-    if len(_DRAFT_KIND) < 4096:
-        _DRAFT_KIND[tag] = kind
-    return kind
+# the compiled geometry walk (setup.py builds it); without it the Python walk below is used
+_walk = load("db.citygml._walk")
+if _walk is not None and not _walk.selftest():  # built against other lxml headers: not used
+    _walk = None
+#: False when the compiled walk is not built or `CITYTHERM_NO_COMPILED=1` turns it off
+COMPILED_WALK = _walk is not None
 
 
 class _BuildingReader:
@@ -514,6 +399,35 @@ class _BuildingReader:
                     t.solid_reversed = sign < 0
 
 
+class _CompiledReader(_BuildingReader):
+    """`_BuildingReader` whose boundary and geometry properties are walked by `_walk` (unchecked
+    ids only); `_walk.Bail` when a building holds something left to the Python walk."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        #: (owner element, node address) of references whose line libxml2 does not keep in the
+        #: node (-k in `scope.refs`: entry k - 1); looked up for the references warned about
+        self.far: list[tuple[etree._Element, int]] = []
+
+    def _boundary(self, prop: etree._Element, d: _Draft) -> None:
+        _walk.boundary(self, prop, d)
+
+    def _geom_property(self, el: etree._Element, d: _Draft, cls: str, sid: str | None) -> bool:
+        return _walk.geom_property(self, el, d, cls, sid)
+
+    def resolve(self) -> None:
+        """`_BuildingReader.resolve`, with the true line of each reference it warns about."""
+        refs, polys, colls = self.scope.refs, self.scope.polys, self.scope.collections
+        for k, (ref, in_solid, sign, line) in enumerate(refs):
+            if type(line) is int and line < 0 and ref not in polys and ref not in colls:
+                refs[k] = (ref, in_solid, sign, _walk.far_line(self.far, -line - 1))
+        super().resolve()
+
+
+if _walk is not None:
+    _walk.setup(_PolyRec, BOUNDARY_CLASSES, ring_coords)
+
+
 def read_building(
     el: etree._Element,
     *,
@@ -521,6 +435,7 @@ def read_building(
     fallback_id: str,
     default_srs: str | None,
     surface_registry: Mapping[str, SurfaceData] | None = None,
+    compiled: bool | None = None,
 ) -> Building:
     """A complete top-level building element -> `Building` (parts nested).
 
@@ -530,13 +445,25 @@ def read_building(
         fallback_id: id to use when the building has no `gml:id` (stable: from its position).
         default_srs: the model's `srsName`, used when the building's geometry names none.
         surface_registry: model-level surface data by id (for `xlink:href` from local appearances).
+        compiled: walk the geometry with the compiled `_walk` (None: when it is built and not
+            turned off, `COMPILED_WALK`); the Building is the same either way.
     """
     registry = surface_registry or {}
     # ids are checked all at once after the walk (the usual file: every id a plain NCName); a
     # building with any other id is read again with each id mapped as it is read
-    reader = _BuildingReader(id_attr, default_srs, registry, unchecked_ids=True)
-    bid = reader._id(el)
-    draft = reader.draft(el, bid or fallback_id, not bid, None)
+    draft = None
+    use_compiled = COMPILED_WALK if compiled is None else (compiled and _walk is not None)
+    if use_compiled:
+        reader = _CompiledReader(id_attr, default_srs, registry, unchecked_ids=True)
+        bid = reader._id(el)
+        try:
+            draft = reader.draft(el, bid or fallback_id, not bid, None)
+        except _walk.Bail:  # something the compiled walk leaves to the Python walk: read again
+            draft = None
+    if draft is None:
+        reader = _BuildingReader(id_attr, default_srs, registry, unchecked_ids=True)
+        bid = reader._id(el)
+        draft = reader.draft(el, bid or fallback_id, not bid, None)
     if not reader.ids_plain():
         reader = _BuildingReader(id_attr, default_srs, registry)
         bid = reader._id(el)

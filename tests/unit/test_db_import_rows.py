@@ -98,3 +98,20 @@ def test_envelopes_cover_parts_and_skip_buildings_without_vertices() -> None:
 
     assert env == [box(top), box(inner), box(inner), "\\N"]
     assert [t.split("\t")[0] for t in lines.building_tails] == ["top", "mid", "inner", "empty"]
+
+
+def test_checks_numbers_from_the_area_fields() -> None:
+    """The checks' JSON numbers made from the area's COPY fields (`_floats`: NULL for NaN,
+    `inf` kept) are those made from the values, over NaN, infinities, -0.0, subnormals and random
+    decimals (fixed seed)."""
+    from db.import_rows import _floats
+    from db.surface_checks import _nums
+
+    rng = np.random.default_rng(20261126)
+    special = [np.nan, np.inf, -np.inf, -0.0, 0.0, 5e-324, 1e308, 3.0, -7.25, 0.1, 1 / 3]
+    values = np.concatenate([special, rng.normal(0, 1e3, 300)])
+    rng.shuffle(values)
+    expect = [repr(v) if np.isfinite(v) else "null" for v in values.tolist()]
+    assert _nums(values) == expect
+    assert _nums(values, _floats(values)) == expect
+    assert expect.count("null") == 3
