@@ -161,6 +161,18 @@ def report_reasons(report: Any) -> dict[str, str]:
     return out
 
 
+def above_ground(X: np.ndarray, truth: Any) -> np.ndarray:
+    """`(N,)` bool: points `X (N, 3)` (world, m) at or above the synthetic ground of `truth`
+    (`SynthTruth`: its plane, or its terrain `ground` whose heights never exceed `ground.top`).
+    Points above the top are not looked up (as `workers.synth_eval.below_ground`): the same
+    answer as `X[:, 2] >= truth.ground_height(X)` for every point."""
+    top = float(truth.ground.top) if truth.ground is not None else float(truth.ground_z)
+    out = np.ones(len(X), bool)
+    low = np.flatnonzero(X[:, 2] < top)
+    out[low] = X[low, 2] >= truth.ground_height(X[low])
+    return out
+
+
 def product_textures(out_dir: Any, case: Case) -> Iterable[tuple[str, np.ndarray, np.ndarray, float]]:
     """The product's textures: per textured polygon `(polygon id, texel centres (N, 3), values
     (N,) K, texel size m)` of its observed texels above the synthetic ground."""
@@ -170,7 +182,7 @@ def product_textures(out_dir: Any, case: Case) -> Iterable[tuple[str, np.ndarray
     for s in iter_surface_textures(out_dir, case.res.manifest.radiometry):
         r, c = np.nonzero(s.grid.mask & np.isfinite(s.value))
         X = s.grid.centres(r, c)
-        above = X[:, 2] >= truth.ground_height(X)
+        above = above_ground(X, truth)
         yield s.polygon.id, X[above], s.value[r, c][above].astype(np.float64), float(s.grid.size)
 
 

@@ -88,6 +88,28 @@ def test_nothing_is_above_the_terrains_top_and_below_ground_skips_only_those() -
     assert compared > 0  # some walls do reach below the terrain's TIN
 
 
+def test_the_reference_evaluation_skips_only_points_above_the_terrains_top() -> None:
+    """`tests.reference.evaluate.above_ground` looks up only points under `Ground.top` and
+    answers what the full lookup answers, on points from under the TIN's lowest to above its
+    top (some of them below the terrain), and on a flat ground."""
+    from types import SimpleNamespace
+
+    from tests.reference.evaluate import above_ground
+
+    _, buildings = read_model(DATA / "nrw-tile-5659-citygml1-lod2.gml")
+    g = terrain_ground(buildings, 35.0)
+    lo, hi = g.vertices[:, :2].min(axis=0), g.vertices[:, :2].max(axis=0)
+    rng = np.random.default_rng(5)
+    X = np.column_stack([rng.uniform(lo - 5.0, hi + 5.0, (20000, 2)),
+                         rng.uniform(g.vertices[:, 2].min() - 1.0, g.top + 5.0, 20000)])  # fmt: skip
+    truth = SimpleNamespace(ground=g, ground_z=35.0, ground_height=g.height)
+    full = X[:, 2] >= g.height(X)
+    assert np.array_equal(above_ground(X, truth), full)
+    assert (~full).sum() > 1000 and (X[:, 2] >= g.top).sum() > 1000  # both branches taken
+    flat = SimpleNamespace(ground=None, ground_z=36.0, ground_height=lambda xy: np.full(len(xy), 36.0))
+    assert np.array_equal(above_ground(X, flat), X[:, 2] >= 36.0)
+
+
 def test_flat_scenes_keep_their_plane_bit_for_bit() -> None:
     """Every base at one height: the ground is the plane, frames identical with the terrain off."""
     blds = procedural_block(6, seed=2)

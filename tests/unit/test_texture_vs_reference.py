@@ -102,11 +102,14 @@ def test_nothing_textured_that_no_frame_sees(figures: dict[str, Any]) -> None:
             marks=pytest.mark.xfail(
                 strict=True,
                 reason="issue 15 open: 2 surfaces of 1 texel each (a wall, a roof) that the "
-                "reference finds mixed in every frame. The reference samples each pixel's closed "
-                "area every 1/5 px (edges included); the product's footprint test casts rays "
-                "through the 4 x 4 block's pixel corners and centres only (every 1/2 px), so a "
-                "polygon corner reaching less than half a pixel into the block between those rays "
-                "goes unseen.",
+                "reference finds mixed in every frame. The product's test is exact since the edge "
+                "test (texture.footprint): in the frame it used, the nearest other polygon is "
+                "0.06 px (wall) and 0.17 px (roof) outside the 4 x 4 block (exact projection). The "
+                "reference's z-buffer (1/6 px virtual pixels) sees 1 of 36 area samples of a corner "
+                "pixel on it: cv2.fillPoly fills virtual pixels whose centre is up to 1/2 virtual "
+                "px outside a polygon and samples take the nearest virtual pixel, so its block is "
+                "up to 1/6 px larger than the rule's. A 0.2 px guard on other polygons' edges in "
+                "the product removes both but costs area (median 0.83 x reference).",
             ),
         ),
     ],

@@ -334,7 +334,9 @@ def texture_unit(
     surfaces = [SurfaceTexels.of(g) for g in grids]
     if raycaster is not None:  # texels covered by a touching building (shared walls) are never seen
         surfaces = [s.without(buried_texels(raycaster, s.points, s.grid.normal)) for s in surfaces]
-    scene = OcclusionScene(raycaster, unit.camera, opts.visibility) if raycaster is not None else None
+    scene = None
+    if raycaster is not None:  # the ray caster is over the unit's scene (`unit_raycaster`)
+        scene = OcclusionScene(raycaster, unit.camera, opts.visibility, [unit.building, *unit.occluders])
     textures = [SurfaceTexture.empty(g.shape, opts.fusion.fused) for g in grids]
     t_grid = time.perf_counter() - t0
     t_load = 0.0

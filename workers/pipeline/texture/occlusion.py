@@ -26,8 +26,10 @@ import cv2
 import numpy as np
 
 from workers.pipeline.geometry.camera import Camera
+from workers.pipeline.geometry.citymodel import Building
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.raycast import RayCaster, SceneMesh
+from workers.pipeline.texture.footprint import FootprintEdges
 from workers.pipeline.texture.visibility_options import VisibilityOptions
 
 
@@ -224,7 +226,11 @@ class OcclusionScene:
     group of each polygon. Rays are built in float32 in the mesh's local frame (no float64
     round trip). Not picklable; build one per unit."""
 
-    def __init__(self, raycaster: RayCaster, camera: Camera, options: VisibilityOptions) -> None:
+    def __init__(self, raycaster: RayCaster, camera: Camera, options: VisibilityOptions,
+                 buildings: Sequence[Building] | None = None) -> None:  # fmt: skip
+        """`buildings`: those the ray caster's mesh was built from (`raycast.build_scene_mesh`,
+        same order); their polygons' rings are the outlines of the exact edge test
+        (`VisibilityOptions.boundary_edges`), which is off without them."""
         mesh = raycaster.mesh
         self.mesh = mesh
         self._raycaster = raycaster
@@ -238,6 +244,10 @@ class OcclusionScene:
         self.polygon_index = mesh.polygon_index()
         groups = plane_groups(mesh, options) if options.coplanar_clean else np.arange(mesh.n_polygons)
         self.polygon_group = np.append(groups, -1).astype(np.intp)
+        self._edges: FootprintEdges | None = None
+        if options.boundary_edges and buildings is not None:
+            self._edges = FootprintEdges(buildings, mesh, camera, groups, options.occlusion_tolerance_m,
+                                         options.coplanar_clean)  # fmt: skip
 
     def buffer(self, pose: Pose, uv: np.ndarray, step: int = 1, margin: int = 0) -> HitBuffer:
         """Cast the grid of every `step`-th pixel around `uv (N, 2)` (the 2x2 grid elements around
@@ -330,7 +340,18 @@ class OcclusionScene:
 
     def visible_flat(self, pose: Pose, uv: np.ndarray, dist: np.ndarray, group: np.ndarray) -> np.ndarray:
         """`visible` on the samples of all surfaces at once: `uv (N, 2)` pixels, `dist (N,)`
-        metres to the projection centre, `group (N,)` each sample's plane group -> `(N,)` bool."""
+        metres to the projection centre, `group (N,)` each sample's plane group -> `(N,)` bool.
+        The samples the rays pass then go through the exact edge test (`boundary_edges`)."""
+        ok = self._rays_clean(pose, uv, dist, group)
+        if self._edges is not None and ok.any():
+            k = np.flatnonzero(ok)
+            ok[k] = ~self._edges.crossed(pose, uv[k], group[k], self.options.blur_margin_px)
+        return ok
+
+    def _rays_clean(self, pose: Pose, uv: np.ndarray, dist: np.ndarray, group: np.ndarray) -> np.ndarray:
+        """The ray half of `visible_flat`: `(N,)` bool, the cast rays around each sample see its
+        own plane at its distance (coarse grid, then full resolution and pixel corners near a
+        silhouette)."""
         o, pg = self.options, self.polygon_group
         m = o.blur_margin_px
         if self.step == 1:

@@ -48,6 +48,16 @@ class VisibilityOptions:
             pixel half on a neighbour is a mixed pixel even when its centre is not; a pixel's
             value integrates its area): the footprint's boundary, its outermost pixel corners
             included, is part of it.
+        boundary_edges: the samples the rays find clean are then tested exactly against the
+            scene's polygon outlines (`footprint.FootprintEdges`): a boundary edge of the texel's
+            own polygon, or of a polygon in front of its plane (less than `occlusion_tolerance_m`
+            behind it), that crosses or touches the footprint makes it mixed. The rays read every
+            1/2 px near a silhouette and every 3rd pixel elsewhere: a polygon corner or a strip
+            thinner than that between them went unseen. On the 15-frame NRW test flight (its
+            first 40 units), a dense cast (every 1/20 px) finds 128 of the 171 footprints the
+            edges reject mixed; the other 43 have an outline within about 0.06 px (the rays hit
+            the triangulated mesh, whose border departs from a non-planar polygon's ring by a
+            few cm). Observed area per surface 1.014 -> 1.011 x the reference's.
         coplanar_deg, coplanar_m: polygons of one building whose normals differ by less than
             `coplanar_deg` and whose planes are less than `coplanar_m` apart form one plane (a
             facade split into several polygons).
@@ -70,6 +80,7 @@ class VisibilityOptions:
     blur_margin_px: int = 1
     buffer_step_px: int = 3
     pixel_area: bool = True
+    boundary_edges: bool = True
     coplanar_deg: float = 1.0
     coplanar_m: float = 0.05
     coplanar_clean: bool = False
