@@ -37,6 +37,7 @@ from workers.pipeline.orientation.wireframe import Wireframe, mesh_wireframe
 
 __all__ = ["SequenceOrientationOptions", "WindowResult", "WindowTask", "orient_window"]
 
+
 @dataclass(frozen=True)
 class SequenceOrientationOptions:
     """Parameters of the sequence orientation (frames, seconds)."""
@@ -83,7 +84,6 @@ class SequenceOrientationOptions:
                 f"windows of {self.window_frames} frames overlapping by {self.overlap_frames}: "
                 "need at least 2 frames and an overlap smaller than the window"
             )
-
 
 
 #: per process: the scene of the last plan whose windows ran here, `(scene_key, caster, wireframe)`
