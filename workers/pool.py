@@ -77,6 +77,20 @@ PRELOAD_FRAMES_VAR = "CITYTHERM_PRELOAD_FRAMES"
 _MAX_FRAMES_PICKLE = 96 * 1024
 
 
+#: `(pid, frames)`: the fork server `start_pool_server` started last and the frames it decoded
+#: (pickled, base64; None: none); a server of another pid was started otherwise, without frames
+_SERVER_FRAMES: list[tuple[int | None, str | None]] = [(None, None)]
+
+
+def _pickled_frames(frames: object | None) -> str | None:
+    """`frames` pickled as the fork server's environment carries them (base64), None when there
+    are none or they pickle larger than `_MAX_FRAMES_PICKLE`."""
+    if frames is None:
+        return None
+    blob = base64.b64encode(pickle.dumps(frames)).decode("ascii")
+    return blob if len(blob) <= _MAX_FRAMES_PICKLE else None
+
+
 def start_pool_server(workers: int, frames: object | None = None) -> None:
     """Start the fork server of `pool_context(workers)` now (`workers > 1` and forkserver only),
     so that its imports (`workers.preload`, about 2 CPU s) overlap the job's first stages instead
@@ -87,17 +101,26 @@ def start_pool_server(workers: int, frames: object | None = None) -> None:
     `frames`: the job's picklable frame source with a per-process cache of decoded frames
     (`db.sequence_package.PackageFrames`): the server decodes every frame once when they all
     fit in the cache (`workers.preload.decode_frames`), and every worker forked from it finds
-    them decoded (copy on write) instead of decoding each frame again in each process."""
+    them decoded (copy on write) instead of decoding each frame again in each process.
+
+    The fork server is one per process and decodes its frames once, when it starts: a server
+    still running from an earlier job with other frames (or none) is stopped first and a new
+    one started with this job's, so that each job's workers inherit its own frames and not the
+    earlier job's (a server with the same frames is kept)."""
     if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
         return
+    blob = _pickled_frames(frames)
+    pid = forkserver._forkserver._forkserver_pid
+    if pid is not None and _SERVER_FRAMES[0] != (pid, blob):
+        stop_pool_server()
     before = {var: os.environ.get(var) for var in (*LIBRARY_THREAD_VARS, THREADS_VAR, PRELOAD_FRAMES_VAR)}
     try:
         pool_context(workers)
-        if frames is not None:
-            blob = base64.b64encode(pickle.dumps(frames)).decode("ascii")
-            if len(blob) <= _MAX_FRAMES_PICKLE:
-                os.environ[PRELOAD_FRAMES_VAR] = blob
+        os.environ.pop(PRELOAD_FRAMES_VAR, None)
+        if blob is not None:
+            os.environ[PRELOAD_FRAMES_VAR] = blob
         forkserver.ensure_running()
+        _SERVER_FRAMES[0] = (forkserver._forkserver._forkserver_pid, blob)
     finally:
         for var, value in before.items():
             if value is None:
@@ -105,6 +128,16 @@ def start_pool_server(workers: int, frames: object | None = None) -> None:
             else:
                 os.environ[var] = value
 
+
+def stop_pool_server() -> None:
+    """Stop this process's fork server, if one runs, once the workers forked from it have ended
+    (a pool still open keeps it: this waits for it)."""
+    server = forkserver._forkserver
+    try:
+        server._stop()  # CPython's own (tests use it); closes the server's "alive" pipe and waits
+    except ChildProcessError:  # already ended and reaped
+        server._forkserver_pid = server._forkserver_address = server._forkserver_alive_fd = None
+    _SERVER_FRAMES[0] = (None, None)
 
 
 #: `map(function, items)` for independent, picklable tasks, results in item order

@@ -71,3 +71,55 @@ def test_starting_the_server_leaves_this_process_environment_as_it_was(tmp_path,
     seen.clear()
     pool.start_pool_server(1, _frames(tmp_path, 2))  # one worker: no pool, no server
     assert seen == {}
+
+
+def _worker_state(_: int) -> tuple[list[str], int, int | None]:
+    """In a pool worker: the files of the frames its process holds decoded (sorted), its nice
+    value and the one the fork server's preload ran at."""
+    import db.sequence_package as sp
+    import workers.preload as pre
+
+    return sorted(key[0] for key in sp._FRAMES), os.nice(0), pre.preloaded_at_nice[0]
+
+
+def test_each_job_s_workers_inherit_that_job_s_frames(tmp_path, monkeypatch) -> None:
+    import multiprocessing
+    import multiprocessing.forkserver as fs
+    from concurrent.futures import ProcessPoolExecutor
+
+    import pytest
+
+    import workers.pool as pool
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no forkserver on this platform")
+    for var in (*pool.LIBRARY_THREAD_VARS, pool.THREADS_VAR):
+        monkeypatch.setenv(var, "1")  # restored after: pool_context sets them in this process
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    jobs = {"a": _frames(tmp_path / "a", 3), "b": _frames(tmp_path / "b", 2)}
+    seen, servers, nice = [], [], []
+    try:
+        for name in ("a", "b", "b", "a"):
+            pool.start_pool_server(2, jobs[name])
+            servers.append(fs._forkserver._forkserver_pid)
+            with ProcessPoolExecutor(max_workers=1, mp_context=pool.pool_context(2)) as ex:
+                paths, worker_nice, preload_nice = ex.submit(_worker_state, 0).result()
+            seen.append(paths)
+            nice.append((worker_nice, preload_nice))
+    finally:
+        pool.stop_pool_server()
+    a = sorted(str(tmp_path / "a" / f"{i}.png") for i in range(3))
+    b = sorted(str(tmp_path / "b" / f"{i}.png") for i in range(2))
+    assert seen == [a, b, b, a]  # each job's workers hold its frames decoded, and only those
+    # a job with other frames starts another server; one with the same frames keeps it
+    assert servers[0] != servers[1] == servers[2] != servers[3]
+    assert fs._forkserver._forkserver_pid is None
+    # the server's imports and decoding ran below this process's priority, its workers at it
+    import sys
+
+    import workers.preload as pre
+
+    mine = os.nice(0)
+    lowered = min(mine + pre.PRELOAD_NICE, 19) if sys.platform == "linux" else None
+    assert nice == [(mine, lowered)] * 4

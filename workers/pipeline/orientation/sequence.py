@@ -155,11 +155,12 @@ class SequenceOrientation:
 
 def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list[tuple[int, int]]:
     """Windows `(start, stop)` (positions into `times`, stop exclusive) of consecutive frames:
-    runs split where the time step exceeds `max_gap_s` (runs of a single frame give no window),
-    each run into windows overlapping by `overlap_frames` (the last window is taken back so that
-    it is full when the run allows). A run of up to `min_window_frames` is one window; a longer
-    one is cut into at least `min_windows` windows: of length `ceil((n + (min_windows − 1) ·
-    overlap) / min_windows)` within `[min_window_frames, window_frames]`.
+    runs split where the time step exceeds `max_gap_s` (runs of a single frame give no window).
+    A run of up to `min_window_frames` is one window; a longer one of `n` frames is cut into `m`
+    equal windows spread evenly over it (consecutive ones overlap by at least `overlap_frames`):
+    `m` is the fewest windows of at most `window_frames` rounded up to a multiple of
+    `min_windows` (the workers that orient them at once finish together), each of
+    `max(min_window_frames, ceil((n + (m − 1) · overlap) / m))` frames.
 
     >>> o = SequenceOrientationOptions(window_frames=3, overlap_frames=1, min_window_frames=3)
     >>> windows([0.0, 0.1, 0.2, 0.3, 5.0, 5.1], o)
@@ -168,10 +169,10 @@ def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list
     [(1, 3)]
     >>> [windows(np.arange(n) * 0.1, SequenceOrientationOptions()) for n in (60, 100)]
     [[(0, 60)], [(0, 70), (30, 100)]]
-    >>> windows(np.arange(300) * 0.1, SequenceOrientationOptions())  # two windows of 165 / 30
-    [(0, 165), (135, 300)]
+    >>> windows(np.arange(300) * 0.1, SequenceOrientationOptions())  # four windows of 98 / 31
+    [(0, 98), (67, 165), (135, 233), (202, 300)]
     >>> len(windows(np.arange(3000) * 0.1, SequenceOrientationOptions()))
-    22
+    34
     """
     t = np.asarray(times, dtype=np.float64)
     if len(t) == 0:
@@ -182,20 +183,19 @@ def windows(times: Sequence[float], options: SequenceOrientationOptions) -> list
     k = max(int(options.min_windows), 1)
     out: list[tuple[int, int]] = []
     for a, b in itertools.pairwise(cuts):
-        if b - a < 2:
+        n = b - a
+        if n < 2:
             continue
-        if b - a <= W_min:
+        if n <= W_min:
             out.append((a, b))
             continue
-        W = min(W_max, max(W_min, -(-(b - a + (k - 1) * overlap) // k)))
-        step = W - overlap
-        if b - a <= W:
+        m = max(k, -(-(n - overlap) // (W_max - overlap)))  # fewest windows of at most W_max
+        m = -(-m // k) * k
+        W = max(W_min, -(-(n + (m - 1) * overlap) // m))
+        if n <= W:
             out.append((a, b))
             continue
-        starts = list(range(a, b - W + 1, step))
-        if starts[-1] + W < b:
-            starts.append(b - W)
-        out.extend((s, s + W) for s in starts)
+        out.extend((s, s + W) for s in (a + np.rint(np.linspace(0, n - W, m)).astype(int)).tolist())
     return out
 
 

@@ -37,6 +37,7 @@ from workers.pipeline.orientation.wireframe import Wireframe, mesh_wireframe
 
 __all__ = ["SequenceOrientationOptions", "WindowResult", "WindowTask", "orient_window"]
 
+
 @dataclass(frozen=True)
 class SequenceOrientationOptions:
     """Parameters of the sequence orientation (frames, seconds)."""
@@ -47,20 +48,20 @@ class SequenceOrientationOptions:
     coregister: CoregisterOptions = field(default_factory=CoregisterOptions)
     # windows of consecutive frames, their overlap (a frame near a window's end has less context:
     # it takes its pose from the neighbouring window), a gap longer than this splits the sequence.
-    # A run is cut into at least `min_windows` windows of at least `min_window_frames` (so that
-    # two workers orient a short drive at once: the service's window tasks, `citytherm run
-    # --workers 2`), of at most `window_frames` otherwise. Issue 14: the service bench's
+    # A run is cut into a multiple of `min_windows` windows of at least `min_window_frames` (so
+    # that two workers orient a short drive at once: the service's window tasks, `citytherm run
+    # --workers 2`), of at most `window_frames` otherwise (`sequence.windows`). Issue 14: the service bench's
     # 100-frame drive is two windows of 70 (0-69, 30-99) and keeps the accuracy of one window of
     # 100 (drive past the Berlin model, seed 1: frames below 1 px 0.90 (0.90), median 0.26 px
     # (0.25), 90th percentile 0.80 px (0.93), texture RMSE 0.260 K (0.259), misregistration 0.111
     # texel (0.108); windows of 60 / 20 lost some: 0.89, 0.29 px, 1.1 px, 0.299 K, 0.120 texel).
     # Long drives keep windows of 120: the block's cost is linear in its frames, and windows of
     # 70 / 30 would cost +31 % orient CPU there (70 / 40 frame-windows per frame against 120 / 90).
-    # Issue 18: windows of up to 165, so that a 300-frame drive is two windows of 165 (0-164,
-    # 135-299), one per worker of `--workers 2` (three of 120 kept one worker busy twice as
-    # long), 330 frame-windows instead of 360, and long drives 165 / 135 per frame (-8 %);
-    # frames of the NRW drive within 1 px of the truth 0.970 (0.967 with 120)
-    window_frames: int = 165
+    # Issue 18: the number of windows is a multiple of `min_windows`, all of one length, so that
+    # the workers finish together: a 300-frame drive is four windows of 98 (0-97, 67-164,
+    # 135-232, 202-299), two per worker of `--workers 2` (three of 120 kept one worker busy
+    # twice as long; two of 165 lost pairs within 1 px on the bench drive, 0.941 -> 0.934)
+    window_frames: int = 120
     min_window_frames: int = 70
     min_windows: int = 2
     overlap_frames: int = 30
@@ -83,7 +84,6 @@ class SequenceOrientationOptions:
                 f"windows of {self.window_frames} frames overlapping by {self.overlap_frames}: "
                 "need at least 2 frames and an overlap smaller than the window"
             )
-
 
 
 #: per process: the scene of the last plan whose windows ran here, `(scene_key, caster, wireframe)`
