@@ -4,6 +4,8 @@ them to, on a synthetic drive past a procedural block (rendered frames, the trac
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -127,6 +129,13 @@ def test_the_recheck_keeps_a_block_it_cannot_improve(scene) -> None:
     assert recheck_block(frames, prior, bent, tracks, worse, never)[2] == [] and not calls
     assert recheck_block(frames, prior, bent, tracks, worse, RecheckOptions(enabled=False))[0] is bent
     assert not calls
+    # taken when a suspect's edges fit clearly better and none's fit worse; not when one's rise
+    found = suspect_frames(frames, bent)
+    rms = dict(bent.edge_rms_px)
+    halved = replace(bent, edge_rms_px={**rms, found[0]: 0.5 * rms[found[0]]})
+    assert recheck_block(frames, prior, bent, tracks, lambda s, t: halved)[0] is halved
+    mixed = replace(halved, edge_rms_px={**halved.edge_rms_px, found[-1]: 1.5 * rms[found[-1]]})
+    assert recheck_block(frames, prior, bent, tracks, lambda s, t: mixed)[0] is bent
 
 
 def test_restart_poses_interpolate_the_neighbours_correction(scene) -> None:
