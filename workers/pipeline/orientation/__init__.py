@@ -26,7 +26,9 @@ Entry points, by stage:
   `CoregisterOptions` and `calibrated_options` live in `building_options`).
 - `block`: a block of frames oriented with tracks and the model (`refine_block`,
   `adjust_block`, `BlockOptions`), and the building's check of the sequence poses
-  (`refine_from_sequence`, `UnitSequence`); `bundle`: the bundle adjustment with tie points,
+  (`refine_from_sequence`, `UnitSequence`); `block_recheck`: weakly tied frames whose model edges
+  contradict the adjusted block, their ties dropped and the block adjusted again
+  (`recheck_block`, `RecheckOptions`); `bundle`: the bundle adjustment with tie points,
   model planes, model edges and priors (`bundle_adjust`, `BundleOptions`); `tracks`: feature
   tracks on the model's surfaces (`track_sequence`, `Tracks`, `TrackOptions`).
 - `common_correction`: one common correction of a building's or sequence's priors

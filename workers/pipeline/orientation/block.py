@@ -45,6 +45,7 @@ from workers.pipeline.geometry.camera import Camera
 from workers.pipeline.geometry.pose import Pose
 from workers.pipeline.geometry.pose_increments import pose_delta, project_jacobian
 from workers.pipeline.geometry.raycast import RayCaster
+from workers.pipeline.orientation.block_recheck import RecheckOptions, recheck_block
 from workers.pipeline.orientation.bundle import BundleOptions, BundleResult, bundle_adjust
 from workers.pipeline.orientation.edge_observations import FrameWireframes, edge_support, frame_edges
 from workers.pipeline.orientation.features import FeatureOptions
@@ -104,6 +105,9 @@ class BlockOptions:
     # a building unit checks the sequence's pose of a frame with the building's own edges where at
     # least this many of them are matched at that pose (`refine_from_sequence`)
     min_matched_edges: int = 1
+    # frames whose model edges contradict the adjusted pose (a short wrong track bent them):
+    # their ties dropped, restarted from the neighbours' correction, adjusted again (`block_recheck`)
+    recheck: RecheckOptions = field(default_factory=RecheckOptions)
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,9 +152,13 @@ def adjust_block(
     edge_options: EdgeOptions = EdgeOptions(),
     feature_options: FeatureOptions = FeatureOptions(),
     prior_options: PriorOptions = PriorOptions(),
-) -> tuple[BundleResult, Tracks]:
+) -> tuple[BundleResult, Tracks, list[int]]:
     """Tracks through `frames` and the bundle adjustment of the block against `scene_wf`, tracked
-    and adjusted again when the ties fit worse than their σ (`retrack_sigma0`; module docstring).
+    and adjusted again when the ties fit worse than their σ (`retrack_sigma0`; module docstring),
+    then the frames whose model edges contradict their adjusted pose rechecked
+    (`block_recheck.recheck_block`: their ties dropped, adjusted again from their neighbours'
+    correction). Returns the adjustment, its tracks (the rechecked frames' ties left out) and the
+    frames rechecked (empty when the first adjustment stood).
 
     Args:
         camera: interior orientation.
@@ -197,7 +205,13 @@ def adjust_block(
         poses = res.poses
         if res.sigma0 <= options.retrack_sigma0:
             break
-    return res, tracks
+
+    def readjust(begin: Mapping[int, Pose], kept: Tracks) -> BundleResult:
+        return bundle_adjust(camera, frames, images, begin, prior, frame_info, common_info, kept, frame_wf,
+                             raycaster, options.bundle, fit_options, edge_options, feature_options,
+                             prior_options)  # fmt: skip
+
+    return recheck_block(frames, prior, res, tracks, readjust, options.recheck)
 
 
 def refine_block(
@@ -226,7 +240,7 @@ def refine_block(
     if len(frames) < 2:
         keep = {i: RefinedPose(i, prior[i], "prior", float("nan"), 0) for i in frames}
         return keep, None, "fewer than 2 frames"
-    res, _ = adjust_block(
+    res, _, _ = adjust_block(
         camera,
         scene_wf,
         raycaster,

@@ -108,7 +108,8 @@ class SequenceOrientation:
             "tie_observations": int, "frames_confirmed_by_planes": int,
             "frames_inconsistent_with_priors": int, "frames_undetermined": int,
             "plane_rms_m": float | None,
-            "frames_taken": int}` (`sequence_acceptance.confirm_block`).
+            "frames_taken": int, "frames_rechecked": int}` (`sequence_acceptance.confirm_block`;
+            `block_recheck`).
         tracks: the tie observations of each frame from the window its pose came from (track
             points as adjusted, ids unique; the overlapping windows tracked the same points).
         ties, tie_rms_px: inlier tie observations of each oriented frame and their RMS (px).

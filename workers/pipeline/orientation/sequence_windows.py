@@ -182,7 +182,7 @@ def orient_window(task: WindowTask) -> WindowResult:
     options, co = task.options, task.options.coregister
     block = list(task.frames)
     images = {f: task.frame_source.load(f) for f in block}
-    res, tracks = adjust_block(
+    res, tracks, rechecked = adjust_block(
         task.camera,
         scene_wf,
         caster,
@@ -203,7 +203,7 @@ def orient_window(task: WindowTask) -> WindowResult:
         options.block.bundle,
     )  # fmt: skip
     reason = block_reason(block, task.prior, res, options.block, need_edges=False) or conf.reason
-    summary = _block_summary(block, res, tracks, conf, reason)
+    summary = _block_summary(block, res, tracks, conf, reason, rechecked)
     if reason:
         return WindowResult(task.index, task.frames, summary, {}, {}, {}, {}, None)
     taken = [f for f in block if conf.taken[f]]
@@ -220,9 +220,15 @@ def orient_window(task: WindowTask) -> WindowResult:
 
 
 def _block_summary(
-    block: Sequence[int], res: BundleResult, tracks: Tracks, conf: Confirmation, reason: str
+    block: Sequence[int],
+    res: BundleResult,
+    tracks: Tracks,
+    conf: Confirmation,
+    reason: str,
+    rechecked: Sequence[int] = (),
 ) -> dict:
-    """One window's entry of `SequenceOrientation.blocks` (see there)."""
+    """One window's entry of `SequenceOrientation.blocks` (see there); `rechecked`: the frames
+    `block_recheck` adjusted again."""
     anchor = conf.anchor
     sup = [res.edge_support[f] for f in block if f in res.edge_support]
     nul = [res.null_support[f] for f in block if f in res.null_support]
@@ -242,4 +248,5 @@ def _block_summary(
         "frames_undetermined": len(conf.undetermined),
         "plane_rms_m": round(conf.plane_rms_m, 3) if np.isfinite(conf.plane_rms_m) else None,
         "frames_taken": sum(1 for f in block if conf.taken[f] and not reason),
+        "frames_rechecked": len(rechecked),
     }
