@@ -1,27 +1,16 @@
-"""The optional compiled parts of the import (setup.py builds them with `make install`): the
-CityGML geometry walk (`db.citygml._walk`) and the float texts of the COPY rows (`db._fmt`).
+"""The switch of the optional compiled parts of the import (setup.py builds them with `make
+install`): the CityGML geometry walk (`db.citygml._walk`, used by `building_read`) and the float
+texts of the COPY rows (`db._fmt`, used by `import_rows` and `surface_checks`).
 
-`load(name)` gives the module, or None when it is not built or `CITYTHERM_NO_COMPILED=1` turns the
-compiled parts off (A/B runs; the Python code then gives the same rows).
+Each user imports its compiled module itself (a plain `import`, so the import graph shows it) and
+falls back to its Python code when the module is not built or `OFF`; the rows are the same.
 """
 
 from __future__ import annotations
 
-import importlib
 import os
-from types import ModuleType
 
-__all__ = ["OFF", "load"]
+__all__ = ["OFF"]
 
-#: True when `CITYTHERM_NO_COMPILED=1`: every caller uses its Python code
+#: True when `CITYTHERM_NO_COMPILED=1`: every caller uses its Python code (A/B runs)
 OFF = os.environ.get("CITYTHERM_NO_COMPILED", "") == "1"
-
-
-def load(name: str) -> ModuleType | None:
-    """The compiled module `name`, or None (not built, built for another Python, or turned off)."""
-    if OFF:
-        return None
-    try:
-        return importlib.import_module(name)
-    except ImportError:
-        return None

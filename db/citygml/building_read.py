@@ -68,13 +68,18 @@ from db.citygml.names import (
     ref_id,
     to_ncname,
 )
-from db.compiled import load
+from db.compiled import OFF as _COMPILED_OFF
 from workers.pipeline.geometry.citymodel import Building, Polygon, Ring, SurfaceData
 
 log = logging.getLogger(__name__)
 
 # the compiled geometry walk (setup.py builds it); without it the Python walk below is used
-_walk = load("db.citygml._walk")
+try:
+    from db.citygml import _walk
+except ImportError:  # not built (or for another Python)
+    _walk = None  # type: ignore[assignment]
+if _COMPILED_OFF:
+    _walk = None  # type: ignore[assignment]
 if _walk is not None and not _walk.selftest():  # built against other lxml headers: not used
     _walk = None
 #: False when the compiled walk is not built or `CITYTHERM_NO_COMPILED=1` turns it off
