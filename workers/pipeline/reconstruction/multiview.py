@@ -64,10 +64,10 @@ class MultiViewOptions:
     min_angle_deg: float = 1.0  # smallest largest-angle between a track's rays
     min_depth_m: float = 2.0  # nearer points (or behind a camera) are not triangulated
     # `consistent_tracks`' limit (px; None: every track as matched). Off by default: measured
-    # on `bench/orientation_rgb.py --consistent-tracks 8` (48 frames, load 12-36): seed 1 cloud
-    # distance 0.0666 -> 0.0502 m, TIR position 0.162 -> 0.086 m; seed 2 the block accepted
-    # (was refused: moved 1.12 m) and the distance 0.455 -> 0.046 m, but the position 0.159 ->
-    # 0.693 m: the rigid ICP leaves the poses 0.66 m high, where the mean distance equals the truth's
+    # on `bench/orientation_rgb.py --consistent-tracks 8` (48 frames, load 5): seed 1 cloud
+    # distance 0.0666 -> 0.0503 m, TIR position 0.162 -> 0.089 m; seed 2 the block accepted
+    # (was refused: moved 1.12 m) and the distance 0.455 -> 0.048 m, but the position 0.159 ->
+    # 0.740 m: the rigid ICP leaves the poses 0.66 m high, where the mean distance equals the truth's
     # (0.0467 vs 0.0475 m: these facades leave the height to a few window reveals)
     start_max_px: float | None = None
     start_rounds: int = 3  # ... its rounds of triangulation and dropping
