@@ -22,7 +22,8 @@ with ground control: 1 cm / 0.005° per frame). Prints JSON:
 - `cpu_s` / `wall_s` per step and the machine's load average.
 
 Usage: `python bench/orientation_rgb.py [--frames 48] [--buildings 3] [--seed 1] [--interval 0.25]
-[--look-up 10] [--per-frame] [--no-multiview] [--prior-direction] [--degeneracy-ratio R]` (a frame
+[--look-up 10] [--per-frame] [--no-multiview] [--prior-direction] [--degeneracy-ratio R]
+[--consistent-tracks PX] [--epipolar-band PX]` (a frame
 every 2 m: the drive passes several facade directions; the flags switch on the options of the
 same names).
 """
@@ -112,6 +113,8 @@ def main() -> None:
     ap.add_argument("--prior-direction", action="store_true", help="TIR DenseOptions.prior_direction")
     ap.add_argument("--no-multiview", action="store_true", help="RgbRegistrationOptions.multiview = None")
     ap.add_argument("--degeneracy-ratio", type=float, default=None, help="IcpOptions.degeneracy_ratio")
+    ap.add_argument("--consistent-tracks", type=float, default=None, help="MultiViewOptions.start_max_px")
+    ap.add_argument("--epipolar-band", type=float, default=None, help="ImageTrackOptions.epipolar_band_px")
     a = ap.parse_args()
     _, blds = read_model(BUNDLED_MODEL)
     opts = SynthOptions(n_frames=a.frames, seed=a.seed, buildings=a.buildings, rgb=RgbOptions(),
@@ -128,6 +131,11 @@ def main() -> None:
         o = replace(o, multiview=None)
     if a.prior_direction:
         o = replace(o, tir=replace(o.tir, prior_direction=True))
+    if o.multiview is not None and a.consistent_tracks is not None:
+        o = replace(o, multiview=replace(o.multiview, start_max_px=a.consistent_tracks))
+    if o.multiview is not None and a.epipolar_band is not None:
+        mv = o.multiview
+        o = replace(o, multiview=replace(mv, tracks=replace(mv.tracks, epipolar_band_px=a.epipolar_band)))
     if a.degeneracy_ratio is not None:
         o = replace(o, icp=replace(o.icp, degeneracy_ratio=a.degeneracy_ratio))
     tir, c_tir, w_tir = timed(tir_cloud, tir_imgs.__getitem__, m.camera, tir_priors, o)
@@ -143,6 +151,7 @@ def main() -> None:
     common = np.mean([p.center - t.center for p, t in zip(tir_priors, tr.poses, strict=True)], axis=0)
     out = {
         "options": {"per_frame": a.per_frame, "multiview": not a.no_multiview,
+                    "consistent_tracks_px": a.consistent_tracks, "epipolar_band_px": a.epipolar_band,
                     "prior_direction": a.prior_direction, "degeneracy_ratio": o.icp.degeneracy_ratio},
         "scene": {"model": Path(BUNDLED_MODEL).name, "frames": a.frames, "buildings": list(tr.cluster),
                   "seed": a.seed, "look_up_deg": a.look_up, "interval_s": a.interval,

@@ -15,7 +15,8 @@ does not (method 3 works where there is no model).
 
 Steps: SIFT keypoints on the 8-bit matching copy (`dense_stereo.to_gray8`: stretched, CLAHE);
 every frame matched with the next frames whose centres lie within `max_baseline_m` (at most
-`max_partners`), Lowe's ratio test and mutual best matches, then the essential matrix (RANSAC,
+`max_partners`), Lowe's ratio test and mutual best matches (with `epipolar_band_px`, among the
+keypoints near the epipolar line from the given poses only), then the essential matrix (RANSAC,
 `ransac_px`) of each pair keeps its inliers; the verified matches are joined into tracks
 (union-find over keypoints) and tracks that claim two keypoints in one frame are dropped.
 """
@@ -46,6 +47,9 @@ class ImageTrackOptions:
     ransac_px: float = 1.0  # essential-matrix RANSAC threshold
     min_inliers: int = 20  # a pair with fewer verified matches adds none
     min_length: int = 3  # tracks observed in fewer frames are dropped
+    # guided matching: a keypoint's candidates lie within this distance of its epipolar line
+    # from the given poses (None: every keypoint of the other frame; see `verified_matches`)
+    epipolar_band_px: float | None = None
 
 
 def image_tracks(
@@ -68,7 +72,10 @@ def image_tracks(
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     for a in range(len(poses)):
         for b in _partners(centers, a, options):
-            ia, ib = verified_matches(kps[a], descs[a], kps[b], descs[b], camera, matcher, options)
+            band = None
+            if options.epipolar_band_px is not None:
+                band = epipolar_band(kps[a], kps[b], camera, poses[a], poses[b], options.epipolar_band_px)
+            ia, ib = verified_matches(kps[a], descs[a], kps[b], descs[b], camera, matcher, options, band)
             for x, y in zip(ia + offset[a], ib + offset[b], strict=True):
                 _union(parent, int(x), int(y))
     return _tracks(parent, kps, offset, options.min_length)
@@ -84,20 +91,28 @@ def _partners(centers: np.ndarray, a: int, options: ImageTrackOptions) -> list[i
 
 def verified_matches(
     ka: np.ndarray, da: np.ndarray, kb: np.ndarray, db: np.ndarray, camera: Camera,
-    matcher: cv2.BFMatcher, options: ImageTrackOptions,
+    matcher: cv2.BFMatcher, options: ImageTrackOptions, band: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Indices `(K,)`, `(K,)` of keypoints `ka` `(Na, 2)`, `kb` `(Nb, 2)` (pixels) that match
-    (ratio test, mutual best) and agree with the pair's essential matrix (RANSAC)."""
+    (ratio test, mutual best) and agree with the pair's essential matrix (RANSAC). With `band`
+    `(Na, Nb)` bool (`epipolar_band`) a keypoint's candidates, for the best match and for the
+    ratio test's second best, are those of its band only: a window repeated up the facade is no
+    rival of the true match, so the ratio test keeps matches it drops among all keypoints."""
     none = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if len(da) < options.min_inliers or len(db) < options.min_inliers:
         return none
-    fwd = matcher.knnMatch(da, db, k=2)
-    back = {m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(db, da, k=1) if m}
-    good = [m[0] for m in fwd if len(m) == 2 and m[0].distance < options.ratio * m[1].distance]
-    pairs = [(m.queryIdx, m.trainIdx) for m in good if back.get(m.trainIdx) == m.queryIdx]
-    if len(pairs) < options.min_inliers:
+    if band is None:
+        fwd = matcher.knnMatch(da, db, k=2)
+        back = {m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(db, da, k=1) if m}
+        good = [m[0] for m in fwd if len(m) == 2 and m[0].distance < options.ratio * m[1].distance]
+        pairs = [(m.queryIdx, m.trainIdx) for m in good if back.get(m.trainIdx) == m.queryIdx]
+        ia, ib = none
+        if pairs:
+            ia, ib = (np.array(c, dtype=np.int64) for c in zip(*pairs, strict=True))
+    else:
+        ia, ib = _banded_matches(da, db, band, options.ratio)
+    if len(ia) < options.min_inliers:
         return none
-    ia, ib = (np.array(c, dtype=np.int64) for c in zip(*pairs, strict=True))
     na, nb = camera.normalized_from_pixel(ka[ia]), camera.normalized_from_pixel(kb[ib])
     thr = options.ransac_px / camera.fx
     E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thr)
@@ -107,6 +122,44 @@ def verified_matches(
     if np.count_nonzero(keep) < options.min_inliers:
         return none
     return ia[keep], ib[keep]
+
+
+def epipolar_band(
+    ka: np.ndarray, kb: np.ndarray, camera: Camera, pa: Pose, pb: Pose, band_px: float
+) -> np.ndarray:
+    """`(Na, Nb)` bool: keypoint `kb[j]` (pixels) lies within `band_px` of the epipolar line of
+    `ka[i]` from the poses `pa`, `pb` (world) — the distance measured in normalised coordinates
+    times the focal length."""
+    R = pb.R_world_from_cam.T @ pa.R_world_from_cam  # cam_b from cam_a
+    t = pb.R_world_from_cam.T @ (pa.center - pb.center)
+    E = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ R
+    na = np.column_stack([camera.normalized_from_pixel(ka), np.ones(len(ka))])
+    nb = np.column_stack([camera.normalized_from_pixel(kb), np.ones(len(kb))])
+    lines = na @ E.T  # (Na, 3): line of each a-keypoint in b's normalised plane
+    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1, keepdims=True), 1e-12)
+    return np.abs(lines @ nb.T) * camera.fx <= band_px
+
+
+def _banded_matches(
+    da: np.ndarray, db: np.ndarray, band: np.ndarray, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual best matches of descriptors `da` `(Na, D)`, `db` `(Nb, D)` among the pairs `band`
+    `(Na, Nb)` allows, passing the ratio test against the second best in the band (a single
+    candidate passes). Returns keypoint indices `(K,)`, `(K,)`."""
+    a = da.astype(np.float32)
+    b = db.astype(np.float32)
+    d2 = np.sum(a**2, axis=1)[:, None] + np.sum(b**2, axis=1)[None, :] - 2.0 * (a @ b.T)
+    d = np.sqrt(np.maximum(d2, 0.0))
+    d[~band] = np.inf
+    best = np.argmin(d, axis=1)
+    rows = np.arange(len(d))
+    first = d[rows, best]
+    d_second = d.copy()
+    d_second[rows, best] = np.inf
+    second = np.min(d_second, axis=1) if d.shape[1] > 1 else np.full(len(d), np.inf)
+    mutual = np.argmin(d, axis=0)[best] == rows
+    ok = np.isfinite(first) & (first < ratio * second) & mutual
+    return rows[ok].astype(np.int64), best[ok].astype(np.int64)
 
 
 def _union(parent: np.ndarray, x: int, y: int) -> None:
