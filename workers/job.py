@@ -409,6 +409,32 @@ def calibration_documents(
     return mounting_document(mounting, cal), calibration_report(cal, mounting, seconds)
 
 
+def job_warnings(
+    planned: Planned, calibrated: Calibrated, oriented: Oriented, options: RunOptions
+) -> list[str]:
+    """`report.json` `warnings`: the plan's resolution warning, and a warning when refinement was
+    asked for but no frame was oriented (the calibration refused or off, and the sequence
+    orientation accepted no block): the textures then come from the GNSS/INS poses as recorded."""
+    out = [planned.warning] if planned.warning else []
+    cal, rep = calibrated.calibration, oriented.report
+    if not options.refine or calibrated.accepted or rep.get("frames_oriented", 0) > 0:
+        return out
+    if cal is None and not rep.get("run", False):
+        return out  # neither stage asked for (`--no-calibrate`, no orientation): nothing expected
+    why = [f"the sequence calibration was refused ({cal.reason})" if cal else "no calibration ran"]
+    blocks = rep.get("blocks") or []
+    if rep.get("run", False):
+        reasons = sorted({str(b.get("reason", "")) for b in blocks if b.get("reason")})
+        why.append(f"the sequence orientation accepted none of its {len(blocks)} blocks"
+                   + (f" ({'; '.join(reasons)})" if reasons else ""))
+    elif rep.get("reason"):
+        why.append(f"the sequence orientation did not run ({rep['reason']})")
+    out.append("refinement was asked for but no frame was oriented: " + " and ".join(why)
+               + "; the textures come from the GNSS/INS poses as recorded (expect misregistration by the"
+               " GNSS/INS error) or are missing where a building's own refinement rejected its frames")
+    return out
+
+
 def finish(
     out_dir: str | Path,
     ingested: Ingested,
@@ -445,7 +471,7 @@ def finish(
         "buildings_in_model": ingested.n_model_buildings,
         "buildings_near_the_cameras": len(ingested.buildings),
         "failed": [{"id": f.building_id, "error": f.error} for f in failures],
-        "warnings": [planned.warning] if planned.warning else [],
+        "warnings": job_warnings(planned, calibrated, oriented, options),
         "options": options.to_dict(),
     }
     if split_half is not None:

@@ -19,7 +19,8 @@ One stretch (a straight drive, a flight line): the picked frames first, then `st
 consecutive parts of the looked-at frames (a long drive's start where the whole does not fit).
 Several (a drive with turns): the first `start_segments` stretches of at least `min_start_frames`
 looked-at frames, in recording order (a whole-drive attempt would fail there, at the cost of a
-stretch's).
+stretch's); when fewer than `start_segments` are that long (a drive that turns often), the
+longest of the shorter stretches of at least `min_short_frames` fill up the sets, longest first.
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ class SampleOptions:
     start_segments: int = 3
     start_turn_deg: float = 45.0
     min_start_frames: int = 10
+    # when fewer than `start_segments` stretches have `min_start_frames`, the longest of those with
+    # at least this many looked-at frames fill up the start sets
+    min_short_frames: int = 5
     # a looked-at frame counts when its prior view shows at least this many edge samples
     min_samples: int = 10
 
@@ -121,5 +125,11 @@ def start_sets(sample: FrameSample, priors: Mapping[int, Pose], options: SampleO
         sets = [list(sample.pick)] + [[int(i) for i in part] for part in
                                       np.array_split(np.asarray(usable), max(options.start_segments, 1))]
     else:
-        sets = [r for r in runs if len(r) >= options.min_start_frames][: max(options.start_segments, 1)]
+        n = max(options.start_segments, 1)
+        sets = [r for r in runs if len(r) >= options.min_start_frames][:n]
+        # a drive that turns often (every stretch shorter than `min_start_frames`; the 300-frame
+        # NRW drive of seed 2: stretches of 2-9 of the 48 looked-at frames) still gets a start:
+        # its longest stretches of at least `min_short_frames`, longest first
+        short = [r for r in runs if options.min_short_frames <= len(r) < options.min_start_frames]
+        sets += sorted(short, key=lambda r: -len(r))[: n - len(sets)]
     return [spread(s, options.start_frames) for s in sets if s]
