@@ -23,19 +23,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from db.compiled import OFF as _COMPILED_OFF
+from db.compiled import fmt as _fmt  # `repr` of floats in C (Ryu), None: Python's `repr`
 from db.geomcodec import EncodedPolygons, encode_envelope, encode_footprints, encode_polygons
 from db.ops import copy_field, pg_bool_array, pg_text_array
 from db.surface_checks import jsonable, surface_checks
 from workers.pipeline.geometry.citymodel import Appearance, Building, Polygon
-
-#: `repr` of floats in C (Ryu; `db/_fmt.pyx`), None: Python's `repr` (the same texts)
-try:
-    from db import _fmt
-except ImportError:  # not built (or for another Python)
-    _fmt = None  # type: ignore[assignment]
-if _COMPILED_OFF:
-    _fmt = None  # type: ignore[assignment]
 
 if TYPE_CHECKING:  # imported where used: the reader process of a model in the database SRID needs no PROJ
     from workers.pipeline.geometry.transform import CrsTransform

@@ -15,19 +15,11 @@ from typing import Any
 import numpy as np
 
 from db.citygml.checks import CheckOptions
-from db.compiled import OFF as _COMPILED_OFF
+from db.compiled import fmt as _fmt  # `repr` of floats in C (Ryu), None: Python's `repr`
 from db.geomcodec import EncodedPolygons
 from workers.pipeline.geometry.citymodel import Building, Polygon
 
 __all__ = ["fast_checks", "full_checks", "jsonable", "surface_checks"]
-
-#: `repr` of floats in C (Ryu; `db/_fmt.pyx`), None: Python's `repr` (the same texts)
-try:
-    from db import _fmt
-except ImportError:  # not built (or for another Python)
-    _fmt = None  # type: ignore[assignment]
-if _COMPILED_OFF:
-    _fmt = None  # type: ignore[assignment]
 
 
 def full_checks(tops: Sequence[Building]) -> dict[tuple[str, str], str]:

@@ -60,7 +60,9 @@ class SequenceOrientationOptions:
     # Issue 18: the number of windows is a multiple of `min_windows`, all of one length, so that
     # the workers finish together: a 300-frame drive is four windows of 98 (0-97, 67-164,
     # 135-232, 202-299), two per worker of `--workers 2` (three of 120 kept one worker busy
-    # twice as long; two of 165 lost pairs within 1 px on the bench drive, 0.941 -> 0.934)
+    # twice as long; two of 165 gave pairs within 1 px 0.934 against 0.941 on the seed-1 bench
+    # drive, but on seed 3 2 x 165 / 3 x 120 / 4 x 98 gave 0.918 / 0.913 / 0.919: where the
+    # windows are cut matters more than their length)
     window_frames: int = 120
     min_window_frames: int = 70
     min_windows: int = 2
